@@ -1,0 +1,1 @@
+"""Occupancy mapping: GP regression, classic GPOM, Fast-GPOM, BCM fusion, submaps, log-odds, export."""

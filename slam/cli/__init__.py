@@ -1,0 +1,62 @@
+"""The ``slam`` command line (typer). Each command lives in its own module of this package.
+
+A module registers its commands with ``register(app, eval_app)``; heavy imports happen inside
+the command functions so that ``slam --help`` stays fast. Any :class:`GpslamError` is printed
+as one line ``error: <file>:<position>: <what>`` on stderr with exit status 2.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import typer
+
+from registration.errors import GpslamError
+from slam import __version__
+
+# Command modules, in help order. Each defines register(app, eval_app).
+COMMAND_MODULES = (
+    "slam.cli.info_cmd",
+)
+
+app = typer.Typer(
+    name="slam",
+    help="gpslam: SLAM on robot logs — registration, pose graphs, Gaussian-process occupancy maps.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+eval_app = typer.Typer(help="Evaluate trajectories, relations, maps and runs.", no_args_is_help=True)
+app.add_typer(eval_app, name="eval")
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"gpslam {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """gpslam command line."""
+
+
+for _name in COMMAND_MODULES:
+    importlib.import_module(_name).register(app, eval_app)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point: run the typer app, turning project errors into one line and exit 2."""
+    try:
+        app(args=argv, prog_name="slam")
+    except GpslamError as exc:
+        msg = " ".join(str(exc).split())
+        print(f"error: {msg}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        sys.exit(130)

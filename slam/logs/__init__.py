@@ -1,0 +1,65 @@
+"""Robot-log readers and writers. ``open_log`` picks the reader from the file name and content."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from registration.errors import LogFormatError
+
+from .base import LogInfo, LogReader, TopicInfo
+
+__all__ = ["open_log", "LogReader", "LogInfo", "TopicInfo", "detect_format"]
+
+_CARMEN_SUFFIXES = (".clf", ".log", ".carmen", ".txt")
+
+
+def detect_format(path: str | Path) -> str:
+    """Return ``"carmen"``, ``"mcap"``, ``"ros1"`` or ``"kitti"`` for *path* (raises LogFormatError)."""
+    p = Path(path)
+    if not p.exists():
+        raise LogFormatError(p, None, "no such file or directory")
+    if p.is_dir():
+        if (p / "velodyne").is_dir() or any(p.glob("*.bin")):
+            return "kitti"
+        raise LogFormatError(p, None, "directory is not a KITTI sequence (no velodyne/ folder or .bin files)")
+    if p.suffix == ".bin":
+        return "kitti"
+    name = p.name.lower()
+    for comp in (".bz2", ".gz"):
+        if name.endswith(comp):
+            name = name[: -len(comp)]
+    with open(p, "rb") as fh:
+        head = fh.read(16)
+    if head.startswith(b"\x89MCAP") or name.endswith(".mcap"):
+        return "mcap"
+    if head.startswith(b"#ROSBAG V2.0") or name.endswith(".bag"):
+        return "ros1"
+    if name.endswith(_CARMEN_SUFFIXES) or head[:2] == b"BZ" or head[:2] == b"\x1f\x8b":
+        return "carmen"
+    raise LogFormatError(p, None, "unknown log format (expected .clf/.log[.bz2|.gz], .mcap, .bag or a KITTI sequence)")
+
+
+def open_log(path: str | Path, topic: str | None = None) -> LogReader:
+    """Open a robot log of any supported format as a streaming :class:`LogReader`.
+
+    Args:
+        path: a CARMEN log (``.clf``/``.log``, optionally ``.bz2``/``.gz``), an MCAP file, a ROS 1
+            bag, or a KITTI sequence folder (``sequences/NN`` with ``velodyne/`` and ``calib.txt``).
+        topic: the sensor topic to read (MCAP / ROS 1); auto-detected when None.
+    """
+    fmt = detect_format(path)
+    if fmt == "carmen":
+        from .carmen import CarmenReader
+
+        return CarmenReader(path, topic)
+    if fmt == "mcap":
+        from .mcap_reader import McapReader
+
+        return McapReader(path, topic)
+    if fmt == "ros1":
+        from .rosbag1 import Ros1BagReader
+
+        return Ros1BagReader(path, topic)
+    from .kitti import KittiReader
+
+    return KittiReader(path, topic)

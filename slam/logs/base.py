@@ -1,0 +1,67 @@
+"""The reader interface every log format implements."""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+from registration.frame import Frame
+
+
+@dataclass
+class TopicInfo:
+    """One stream of a log: its name, ROS type (or CARMEN message tag) and message count."""
+
+    name: str
+    msgtype: str
+    count: int
+
+
+@dataclass
+class LogInfo:
+    """What ``slam info`` prints about a log (read by streaming the whole file once)."""
+
+    path: str
+    format: str  # "carmen", "mcap", "ros1", "kitti"
+    sensor_topic: str  # the topic whose messages become frames
+    scans: int
+    beams_per_scan: int | None  # 2D: beams per scan (max); 3D: median points per cloud
+    dimension: int  # 2 or 3
+    start: float | None
+    end: float | None
+    has_odometry: bool
+    has_ground_truth: bool
+    topics: list[TopicInfo] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        if self.start is None or self.end is None:
+            return 0.0
+        return self.end - self.start
+
+
+class LogReader(abc.ABC):
+    """A log that yields :class:`~registration.frame.Frame` objects in time order, streaming.
+
+    Implementations keep memory constant in the log length: they hold at most the current
+    message plus small interpolation state (odometry, transforms).
+    """
+
+    format: str = ""
+
+    def __init__(self, path: str | Path, topic: str | None = None) -> None:
+        self.path = Path(path)
+        self.topic = topic
+
+    @abc.abstractmethod
+    def frames(self) -> Iterator[Frame]:
+        """Yield every scan of the chosen sensor topic as a Frame."""
+
+    @abc.abstractmethod
+    def info(self) -> LogInfo:
+        """Summarise the log (streams it once)."""
+
+    def __iter__(self) -> Iterator[Frame]:
+        return self.frames()
