@@ -18,6 +18,7 @@ from slam import __version__
 # Command modules, in help order. Each defines register(app, eval_app).
 COMMAND_MODULES = (
     "slam.cli.info_cmd",
+    "slam.cli.demo_cmd",
 )
 
 app = typer.Typer(

@@ -1,0 +1,1 @@
+"""Loop-closure detection: place descriptors and candidate search (verification lives in the pipeline)."""

@@ -1,0 +1,137 @@
+"""Polar scan descriptor for place recognition of 2D scans (Scan Context, Kim & Kim, IROS 2018, §III).
+
+A scan's hit points (sensor frame) are binned into ``n_rings`` range rings × ``n_sectors`` angular
+sectors; each bin holds the fraction of the scan's points falling in it (a 2D laser has no height,
+so the occupancy replaces Scan Context's maximum height). Two descriptors are compared over all
+cyclic column shifts (eq. 6): the best shift estimates the relative heading, which seeds ICP.
+The *ring key* (eq. 7: the per-ring sum, invariant to rotation) is the vector indexed in a k-d tree
+for fast retrieval, so revisits are found even when the odometry estimate is far off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PolarDescriptorConfig:
+    """Bins of the polar histogram. ``max_range`` in metres; rings are evenly spaced in range."""
+
+    n_rings: int = 20
+    n_sectors: int = 60
+    max_range: float = 15.0
+
+
+def polar_descriptor(points: Array, cfg: PolarDescriptorConfig = PolarDescriptorConfig()) -> Array:
+    """``(n_rings, n_sectors)`` histogram of the fraction of hit points per (range, bearing) bin.
+
+    Args:
+        points: ``(N, 2)`` or ``(N, 3)`` hit points in the sensor frame, metres.
+    """
+    p = np.asarray(points, dtype=float)[:, :2]
+    r = np.hypot(p[:, 0], p[:, 1])
+    keep = (r < cfg.max_range) & (r > 0)
+    r, p = r[keep], p[keep]
+    desc = np.zeros((cfg.n_rings, cfg.n_sectors))
+    if len(r) == 0:
+        return desc
+    ring = np.minimum((r / cfg.max_range * cfg.n_rings).astype(int), cfg.n_rings - 1)
+    bearing = np.arctan2(p[:, 1], p[:, 0]) % (2 * np.pi)
+    sector = np.minimum((bearing / (2 * np.pi) * cfg.n_sectors).astype(int), cfg.n_sectors - 1)
+    np.add.at(desc, (ring, sector), 1.0)
+    return desc / len(r)
+
+
+def ring_key(desc: Array) -> Array:
+    """Rotation-invariant summary (Scan Context eq. 7): the per-ring mass, shape ``(n_rings,)``."""
+    return desc.sum(axis=-1)
+
+
+def shift_distances(query: Array, candidates: Array) -> Array:
+    """Scan Context distance (eq. 5) between *query* and each candidate for every cyclic sector shift.
+
+    Uses column-wise cosine distance averaged over the non-empty columns. Returns ``(M, n_sectors)``:
+    entry ``[m, s]`` compares the query with candidate *m* rolled by *s* sectors. Vectorised with
+    an FFT cross-correlation along the sector axis.
+    """
+    q = np.asarray(query, dtype=float)
+    C = np.asarray(candidates, dtype=float)
+    if C.ndim == 2:
+        C = C[None]
+    qn = np.linalg.norm(q, axis=0)  # (S,)
+    cn = np.linalg.norm(C, axis=1)  # (M, S)
+    qh = q / np.where(qn > 0, qn, 1.0)
+    ch = C / np.where(cn > 0, cn, 1.0)[:, None, :]
+    # corr[m, s] = Σ_col <q[:, col], c_m[:, col - s]> computed for all s via FFT along the sector axis.
+    Fq = np.fft.rfft(qh, axis=-1)
+    Fc = np.fft.rfft(ch, axis=-1)
+    corr = np.fft.irfft((Fq[None] * np.conj(Fc)).sum(axis=1), n=q.shape[1], axis=-1)
+    qmask = (qn > 0).astype(float)
+    cmask = (cn > 0).astype(float)
+    Fm = np.fft.irfft(np.fft.rfft(qmask)[None] * np.conj(np.fft.rfft(cmask, axis=-1)), n=q.shape[1], axis=-1)
+    valid = np.maximum(np.rint(Fm), 1.0)  # number of columns non-empty in both at that shift
+    return 1.0 - corr / valid
+
+
+def best_shift(query: Array, candidates: Array) -> tuple[Array, Array]:
+    """Minimum Scan Context distance and the relative heading for each candidate.
+
+    Returns ``(distance, yaw)`` where ``candidate_T_query ≈ Rot(yaw)`` (about the sensor origin):
+    a query-frame point *p* appears in the candidate frame at ``Rot(yaw) p``. This is the initial
+    rotation for the ICP that verifies the candidate; resolution ``2π / n_sectors``.
+    """
+    D = shift_distances(query, candidates)
+    s = np.argmin(D, axis=1)
+    n = np.asarray(query).shape[1]
+    yaw = (s * 2 * np.pi / n + np.pi) % (2 * np.pi) - np.pi
+    return D[np.arange(len(D)), s], -yaw
+
+
+class DescriptorIndex:
+    """Incremental store of descriptors with ring-key retrieval (rebuilds its k-d tree lazily)."""
+
+    def __init__(self, cfg: PolarDescriptorConfig = PolarDescriptorConfig()) -> None:
+        self.cfg = cfg
+        self._desc: list[Array] = []
+        self._keys: list[Array] = []
+        self._ids: list[int] = []
+        self._tree: cKDTree | None = None
+        self._tree_size = 0
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def add(self, key_id: int, points: Array) -> Array:
+        d = polar_descriptor(points, self.cfg)
+        self._desc.append(d)
+        self._keys.append(ring_key(d))
+        self._ids.append(key_id)
+        return d
+
+    def query(self, desc: Array, k: int = 10, exclude_after: int | None = None) -> list[tuple[int, float, float]]:
+        """The *k* nearest stored places by ring key, re-ranked by shift distance.
+
+        Returns ``(id, distance, yaw)`` sorted by distance; ids ≥ *exclude_after* are skipped
+        (recent keyframes are not loop closures).
+        """
+        n = len(self._ids) if exclude_after is None else int(np.searchsorted(self._ids, exclude_after))
+        if n == 0:
+            return []
+        if self._tree is None or self._tree_size != len(self._keys):
+            self._tree = cKDTree(np.asarray(self._keys))
+            self._tree_size = len(self._keys)
+        kk = min(len(self._keys), max(k * 3, k))
+        _, idx = self._tree.query(ring_key(desc), k=kk)
+        idx = np.atleast_1d(idx)
+        idx = idx[(idx < n)][: k * 2]
+        if len(idx) == 0:
+            return []
+        dist, yaw = best_shift(desc, np.asarray([self._desc[i] for i in idx]))
+        order = np.argsort(dist)[:k]
+        return [(self._ids[idx[o]], float(dist[o]), float(yaw[o])) for o in order]
