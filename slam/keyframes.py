@@ -1,0 +1,53 @@
+"""Keyframe selection: a scan becomes a keyframe when the robot moved or turned enough, or time passed.
+
+The thresholds are the usual ones of graph SLAM front ends (e.g. Grisetti et al., "A Tutorial on
+Graph-Based SLAM", 2010, §III: nodes every ~0.5 m or 0.5 rad) and keep the pose graph sparse while
+consecutive keyframe scans still overlap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, Field
+
+from registration import geometry as G
+
+
+class KeyframeConfig(BaseModel):
+    """When a scan becomes a keyframe (whichever threshold is crossed first)."""
+
+    model_config = {"extra": "forbid"}
+
+    distance_m: float = Field(0.25, gt=0, description="translation since the last keyframe, metres")
+    angle_rad: float = Field(0.25, gt=0, description="rotation since the last keyframe, radians")
+    time_s: float = Field(10.0, gt=0, description="time since the last keyframe, seconds")
+
+
+@dataclass
+class KeyframeSelector:
+    """Stateful selector fed with the odometry pose of every scan (``world_T_base``, 4×4)."""
+
+    config: KeyframeConfig
+    _last_pose: NDArray[np.float64] | None = None
+    _last_stamp: float = -np.inf
+
+    def is_keyframe(self, stamp: float, pose: NDArray[np.float64]) -> bool:
+        """True (and remember this scan) when the scan at *stamp* with odometry *pose* is a keyframe."""
+        if self._last_pose is None:
+            self._accept(stamp, pose)
+            return True
+        rel = G.relative(self._last_pose, pose)
+        dist = float(np.linalg.norm(rel[:3, 3]))
+        ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
+        c = self.config
+        if dist >= c.distance_m or ang >= c.angle_rad or stamp - self._last_stamp >= c.time_s:
+            self._accept(stamp, pose)
+            return True
+        return False
+
+    def _accept(self, stamp: float, pose: NDArray[np.float64]) -> None:
+        self._last_pose = np.array(pose, dtype=float)
+        self._last_stamp = float(stamp)
