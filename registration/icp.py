@@ -1,0 +1,227 @@
+"""SVD-ICP in 2D and 3D (Besl & McKay 1992), with covariance and the residual χ² test.
+
+Each iteration matches every (subsampled) source point to its nearest target point with a
+kd-tree built once on the target (scipy ``cKDTree``), drops pairs beyond the correspondence gate,
+weights the rest (trimmed or robust), and solves the closed-form alignment of
+:func:`registration.align.align_svd` (Arun 1987 / Umeyama 1991) from the *original* source
+points, so the result is ``target_T_source`` directly. A stage ends when the pose increment is
+below ``tol_translation`` / ``tol_rotation``; gates run coarse to fine; ``max_iterations`` caps
+the total. At the fixed point the covariance ``σ² (∂²f/∂δ²)⁻¹`` and the χ² verdict are computed
+(:mod:`registration.covariance`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from .align import align_svd
+from .config import IcpConfig
+from .covariance import (Chi2Verdict, chi2_test, covariance_from_information, fisher_information,
+                         jacobian_plane, jacobian_point)
+from .errors import DegenerateInputError, GeometryError
+from .voxel import voxel_downsample
+
+Array = NDArray[np.float64]
+
+__all__ = ["IcpTarget", "IcpResult", "icp", "robust_weights", "pose_increment"]
+
+
+class IcpTarget:
+    """A target point set prepared once for many alignments: subsampled points, kd-tree and
+    (lazily) PCA normals. Points ``(N, d)`` in the target frame, metres."""
+
+    def __init__(self, points: ArrayLike, voxel_size: float | None = None, normal_neighbors: int = 10,
+                 workers: int = -1) -> None:
+        P = np.asarray(points, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] not in (2, 3):
+            raise GeometryError(f"target points must be (N, 2) or (N, 3), got shape {P.shape}")
+        self.points = voxel_downsample(P, voxel_size, mode="centroid") if voxel_size else P
+        if len(self.points) < 3:
+            raise DegenerateInputError(f"target has {len(self.points)} points; ICP needs at least 3")
+        self.dim = self.points.shape[1]
+        self.tree = cKDTree(self.points)
+        self.normal_neighbors = normal_neighbors
+        self.workers = workers
+        self._normals: Array | None = None
+
+    def normals(self, index: NDArray[np.intp] | None = None) -> Array:
+        """Unit PCA normals (smallest-eigenvalue eigenvector of the k-neighbour scatter) of the
+        target points *index* (all when None). All-point normals are cached."""
+        from .point_to_plane import estimate_normals
+
+        if index is None:
+            if self._normals is None:
+                self._normals = estimate_normals(self.points, self.tree, self.normal_neighbors, self.workers)
+            return self._normals
+        if self._normals is not None:
+            return self._normals[index]
+        return estimate_normals(self.points[index], self.tree, self.normal_neighbors, self.workers)
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    """Outcome of one alignment.
+
+    Attributes:
+        transform: 4×4 ``target_T_source`` (planar for 2D inputs).
+        rmse: root mean square distance of the inlier pairs (m) at the final gate.
+        inliers: number of gated (and kept) pairs; fitness = inliers / source points used.
+        iterations: ICP iterations over all stages.
+        converged: the last stage met the increment tolerance before the iteration cap.
+        residual: Res = Σ w e² of the covariance model's scalar residuals (m²).
+        n_residuals, dof: scalar residual count and pose dimension (3 or 6).
+        covariance: ``(dof, dof)`` covariance of δ with T_true = T·Exp(δ), translation first.
+        degenerate: the information matrix had unobserved directions (see covariance module).
+        chi2: the residual test verdict (σ², threshold, accepted).
+    """
+
+    transform: Array
+    rmse: float
+    inliers: int
+    fitness: float
+    iterations: int
+    converged: bool
+    residual: float
+    n_residuals: int
+    dof: int
+    covariance: Array
+    degenerate: bool
+    chi2: Chi2Verdict
+
+    @property
+    def accepted(self) -> bool:
+        """True when the χ² test accepts the alignment."""
+        return self.chi2.accepted
+
+    @property
+    def information(self) -> Array:
+        """Inverse covariance (for pose-graph edges)."""
+        return np.linalg.inv(self.covariance)
+
+
+def robust_weights(dist: Array, config: IcpConfig) -> Array:
+    """Per-pair weights: 1 (``none``), 0/1 keeping the closest ``trim_fraction`` (``trim``), Huber
+    ``min(1, k/|r|)`` or Cauchy ``1/(1 + (r/k)²)`` with k = ``robust_scale`` (Zhang 1997, Table 1)."""
+    if config.robust == "none":
+        return np.ones_like(dist)
+    if config.robust == "trim":
+        keep = max(3, int(np.ceil(config.trim_fraction * len(dist))))
+        w = np.zeros_like(dist)
+        if keep >= len(dist):
+            w[:] = 1.0
+        else:
+            w[np.argpartition(dist, keep - 1)[:keep]] = 1.0
+        return w
+    k = config.robust_scale
+    if config.robust == "huber":
+        return np.minimum(1.0, k / np.maximum(dist, 1e-300))
+    return 1.0 / (1.0 + (dist / k) ** 2)
+
+
+def pose_increment(A: Array, B: Array) -> tuple[float, float]:
+    """(translation m, rotation rad) of ``A⁻¹ B``."""
+    D = np.linalg.solve(A, B)
+    c = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(D[:3, 3])), float(np.arccos(c))
+
+
+def _as_target(target: ArrayLike | IcpTarget, config: IcpConfig) -> IcpTarget:
+    if isinstance(target, IcpTarget):
+        return target
+    return IcpTarget(target, config.target_voxel_size, config.normal_neighbors, config.workers)
+
+
+def _prepare(source: ArrayLike, tgt: IcpTarget, init: ArrayLike | None, config: IcpConfig) -> tuple[Array, Array]:
+    S = np.asarray(source, dtype=np.float64)
+    if S.ndim != 2 or S.shape[1] != tgt.dim:
+        raise GeometryError(f"source must be (N, {tgt.dim}) like the target, got shape {S.shape}")
+    if config.voxel_size:
+        S = voxel_downsample(S, config.voxel_size)
+    if len(S) < 3:
+        raise DegenerateInputError(f"source has {len(S)} points; ICP needs at least 3")
+    T = np.eye(4) if init is None else np.array(init, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise GeometryError(f"initial guess must be a 4×4 pose, got shape {T.shape}")
+    return S, T
+
+
+def finish(S: Array, tgt: IcpTarget, T: Array, gate: float, config: IcpConfig, iterations: int,
+           converged: bool) -> IcpResult:
+    """Final correspondences at *gate*, RMSE, covariance and χ² test of a converged pose *T*."""
+    d = tgt.dim
+    R, t = T[:d, :d], T[:d, 3]
+    moved = S @ R.T + t
+    dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=config.workers)
+    ok = np.isfinite(dist)
+    n_in = int(ok.sum())
+    if n_in < config.min_inliers:
+        raise DegenerateInputError(f"ICP ended with {n_in} pairs within {gate} m (need {config.min_inliers})")
+    w = robust_weights(dist[ok], config)
+    keep = w > 0
+    src, w, idx_in = S[ok][keep], w[keep], idx[ok][keep]
+    diff = moved[ok][keep] - tgt.points[idx_in]
+    dof = 3 if d == 2 else 6
+    if config.covariance_model == "plane":
+        nrm = tgt.normals(idx_in)
+        e = np.einsum("ij,ij->i", diff, nrm)
+        J = jacobian_plane(src, nrm, R)
+        n_res = len(e)
+    else:
+        e = diff.reshape(-1)
+        J = jacobian_point(src, R)
+        n_res = e.size
+    w_res = w if config.covariance_model == "plane" else np.repeat(w, d)
+    res = float(np.sum(w_res * e * e))
+    verdict = chi2_test(res, n_res, dof, None if config.sigma is None else config.sigma**2,
+                        config.chi2_factor, config.false_rejection_rate)
+    cov, degenerate = covariance_from_information(fisher_information(J, w), verdict.sigma2)
+    rmse = float(np.sqrt(np.mean(np.einsum("ij,ij->i", diff, diff))))
+    return IcpResult(T, rmse, int(len(src)), len(src) / len(S), iterations, converged, res, n_res, dof,
+                     cov, degenerate, verdict)
+
+
+def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None = None,
+        config: IcpConfig | None = None) -> IcpResult:
+    """Point-to-point SVD-ICP of *source* onto *target* (Besl & McKay 1992, §IV).
+
+    Args:
+        source: ``(N, d)`` points in the source frame (m).
+        target: ``(M, d)`` points in the target frame, or a prepared :class:`IcpTarget`.
+        init: initial guess of ``target_T_source`` (4×4); identity when None.
+        config: :class:`IcpConfig` (gates, subsampling, robust weights, tolerances, σ).
+
+    Returns:
+        :class:`IcpResult` with ``transform = target_T_source``.
+
+    Raises:
+        DegenerateInputError: too few points or too few pairs within the gate.
+    """
+    config = config or IcpConfig()
+    tgt = _as_target(target, config)
+    S, T = _prepare(source, tgt, init, config)
+    d = tgt.dim
+    it = 0
+    converged = False
+    tree, tpts, workers = tgt.tree, tgt.points, config.workers
+    for gate in config.gates:
+        converged = False
+        while it < config.max_iterations:
+            it += 1
+            moved = S @ T[:d, :d].T + T[:d, 3]
+            dist, idx = tree.query(moved, k=1, distance_upper_bound=gate, workers=workers)
+            ok = np.isfinite(dist)
+            if np.count_nonzero(ok) < config.min_inliers:
+                raise DegenerateInputError(
+                    f"ICP iteration {it}: {int(ok.sum())} pairs within {gate} m (need {config.min_inliers})")
+            w = None if config.robust == "none" else robust_weights(dist[ok], config)
+            T_new = align_svd(S[ok], tpts[idx[ok]], w)
+            dt, dr = pose_increment(T, T_new)
+            T = T_new
+            if dt < config.tol_translation and dr < config.tol_rotation:
+                converged = True
+                break
+    return finish(S, tgt, T, config.gates[-1], config, it, converged)

@@ -1,0 +1,53 @@
+"""Voxel-grid subsampling of point sets (vectorised; one point per occupied voxel).
+
+A voxel of edge ``size`` (m) is indexed by ``floor(p / size)``; voxel keys are packed into one
+int64 and deduplicated with a sort (``np.unique``), so the cost is O(N log N) with no Python loop.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import GeometryError
+
+Array = NDArray[np.float64]
+
+__all__ = ["voxel_keys", "voxel_downsample"]
+
+
+def voxel_keys(points: Array, size: float) -> NDArray[np.int64]:
+    """One int64 key per point identifying its voxel of edge *size* (m)."""
+    if size <= 0 or not np.isfinite(size):
+        raise GeometryError(f"voxel size must be positive and finite, got {size}")
+    ijk = np.floor(points / size).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    if np.prod(span.astype(np.float64)) >= 2.0**62:
+        raise GeometryError(f"point extent too large for voxel size {size} m")
+    key = ijk[:, 0]
+    for a in range(1, ijk.shape[1]):
+        key = key * span[a] + ijk[:, a]
+    return key
+
+
+def voxel_downsample(points: ArrayLike, size: float | None, mode: Literal["first", "centroid"] = "first") -> Array:
+    """Keep one point per voxel of edge *size* (m): the first point met (``first``, as KISS-ICP
+    does) or the mean of the voxel's points (``centroid``, as Open3D's ``voxel_down_sample``).
+    ``size`` None or 0 returns the input unchanged. Input and output are ``(N, d)`` in the same frame.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] not in (2, 3):
+        raise GeometryError(f"points must be (N, 2) or (N, 3), got shape {P.shape}")
+    if not size or len(P) == 0:
+        return P
+    key = voxel_keys(P, float(size))
+    if mode == "first":
+        _, first = np.unique(key, return_index=True)
+        return P[np.sort(first)]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    out = np.zeros((len(counts), P.shape[1]))
+    np.add.at(out, inv, P)
+    return out / counts[:, None]
