@@ -19,6 +19,7 @@ from slam import __version__
 COMMAND_MODULES = (
     "slam.cli.info_cmd",
     "slam.cli.demo_cmd",
+    "slam.cli.eval_cmd",
 )
 
 app = typer.Typer(

@@ -1,0 +1,94 @@
+"""Trajectory files: exact round trips, evo can read our TUM output, malformed lines name file and line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from registration import geometry as geo
+from registration.errors import LogFormatError
+import slam.trajectory_io as tio
+from slam.trajectory_io import Trajectory, read_g2o_vertices, read_kitti, read_trajectory, read_tum, write_kitti, write_tum
+
+
+def _random_traj(rng, n=50) -> Trajectory:
+    poses = geo.se3_exp(rng.normal(0, [5, 5, 5, 1, 1, 1], (n, 6)))
+    stamps = 1.6e9 + np.cumsum(rng.uniform(0.01, 0.2, n))  # realistic epoch stamps: 19 significant digits matter
+    return Trajectory(stamps, poses, "t")
+
+
+def test_tum_round_trip_is_exact(tmp_path, rng):
+    """write_tum → read_tum returns bit-identical stamps and translations, rotations to 1e-15."""
+    t = _random_traj(rng)
+    write_tum(tmp_path / "a.tum", t)
+    r = read_tum(tmp_path / "a.tum")
+    assert np.array_equal(r.stamps, t.stamps)
+    assert np.array_equal(r.positions, t.positions)
+    np.testing.assert_allclose(r.poses[:, :3, :3], t.poses[:, :3, :3], atol=1e-15)
+
+
+def test_tum_is_readable_by_evo(tmp_path, rng):
+    """evo's own TUM reader yields the same stamps and poses as we wrote (evo compatibility)."""
+    fi = pytest.importorskip("evo.tools.file_interface")
+    t = _random_traj(rng)
+    write_tum(tmp_path / "a.tum", t)
+    e = fi.read_tum_trajectory_file(str(tmp_path / "a.tum"))
+    assert np.array_equal(e.timestamps, t.stamps)
+    np.testing.assert_allclose(np.array(e.poses_se3), t.poses, atol=1e-14)
+
+
+def test_kitti_round_trip_is_bit_exact(tmp_path, rng):
+    """write_kitti → read_kitti returns bit-identical 3×4 blocks; stamps default to 0..N-1 or come from times.txt."""
+    t = _random_traj(rng)
+    write_kitti(tmp_path / "p.txt", t)
+    r = read_kitti(tmp_path / "p.txt")
+    assert np.array_equal(r.poses, t.poses)
+    assert np.array_equal(r.stamps, np.arange(len(t)))
+    (tmp_path / "times.txt").write_text("".join(f"{float(s)!r}\n" for s in t.stamps))
+    assert np.array_equal(read_kitti(tmp_path / "p.txt", tmp_path / "times.txt").stamps, t.stamps)
+
+
+def test_g2o_vertices_se2_and_se3(tmp_path):
+    """VERTEX_SE2 (x, y, θ) and VERTEX_SE3:QUAT lines give the poses they encode, sorted by id; edges are ignored."""
+    (tmp_path / "a.g2o").write_text(
+        "VERTEX_SE2 2 1.0 2.0 0.5\nVERTEX_SE2 0 0 0 0\nEDGE_SE2 0 2 1 2 0.5 1 0 0 1 0 1\nFIX 0\n"
+    )
+    t = read_g2o_vertices(tmp_path / "a.g2o")
+    assert t.stamps.tolist() == [0.0, 2.0]
+    np.testing.assert_allclose(t.poses[1], geo.xytheta_to_matrix(1.0, 2.0, 0.5), atol=1e-15)
+    s = np.sin(0.25)
+    (tmp_path / "b.g2o").write_text(f"VERTEX_SE3:QUAT 0 1 2 3 0 0 {float(s)!r} {float(np.cos(0.25))!r}\n")
+    (tmp_path / "b.stamps").write_text("0 12.5\n")
+    t3 = read_g2o_vertices(tmp_path / "b.g2o", tmp_path / "b.stamps")
+    assert t3.stamps.tolist() == [12.5]
+    np.testing.assert_allclose(t3.poses[0][:3, :3], geo.rotz(0.5), atol=1e-15)
+    np.testing.assert_allclose(t3.poses[0][:3, 3], [1, 2, 3])
+    assert read_trajectory(tmp_path / "a.g2o").stamps.tolist() == [0.0, 2.0]
+
+
+@pytest.mark.parametrize(
+    "reader,text,line",
+    [(read_tum, "# c\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n", "line 3"),
+     (read_tum, "1 0 0 0 0 0 0 1\n2 0 0 x 0 0 0 1\n", "line 2"),
+     (read_tum, "1 0 0 0 0 0 0 0\n", "line 1"),
+     (read_kitti, "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0\n", "line 2"),
+     (read_g2o_vertices, "VERTEX_SE2 0 0 0\n", "line 1")],
+)
+def test_malformed_line_names_file_and_line(tmp_path, reader, text, line):
+    """A malformed line raises LogFormatError whose message names the file and the line number."""
+    p = tmp_path / "bad.txt"
+    p.write_text(text)
+    with pytest.raises(LogFormatError) as ei:
+        reader(p)
+    assert ei.value.where == line and "bad.txt" in str(ei.value)
+
+
+def test_failed_write_leaves_no_file(tmp_path, rng, monkeypatch):
+    """An exception during writing leaves neither the target nor a temporary file behind (atomic write)."""
+    def boom(values):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(tio, "_fmt", boom)
+    with pytest.raises(RuntimeError):
+        write_tum(tmp_path / "x.tum", _random_traj(rng))
+    assert list(tmp_path.iterdir()) == []
