@@ -159,7 +159,94 @@ def relations_cmd(
     _save_json(json_out, {**out, "dataset": ds, "published": PUBLISHED.get(ds) if ds else None})
 
 
+def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:
+    """True poses of the graph nodes: by stamp (``--node-stamps`` file of 'id stamp' or one stamp per node)
+    or, without it, node id = row of the ground-truth trajectory."""
+    import numpy as np
+
+    from evaluation.trajectory import nearest_indices
+    from registration.errors import LogFormatError
+    from slam.trajectory_io import read_trajectory
+
+    ref = read_trajectory(gt)
+    ids = graph.node_ids
+    if node_stamps is None:
+        if ids.max(initial=-1) >= len(ref):
+            raise LogFormatError(gt, None, f"has {len(ref)} poses but the graph has node id {int(ids.max())}; give --node-stamps")
+        return ref.poses[ids]
+    rows = [line.split() for line in Path(node_stamps).read_text().splitlines() if line.strip() and not line.startswith("#")]
+    try:
+        if all(len(r) == 2 for r in rows):
+            table = {int(float(a)): float(b) for a, b in rows}
+            st = np.array([table[int(i)] for i in ids])
+        else:
+            st = np.array([float(r[0]) for r in rows])
+    except (KeyError, ValueError) as exc:
+        raise LogFormatError(node_stamps, None, f"expected 'id stamp' lines or one stamp per node ({exc})") from None
+    if len(st) != len(ids):
+        raise LogFormatError(node_stamps, None, f"has {len(st)} stamps for {len(ids)} nodes")
+    a, b = nearest_indices(st, ref.stamps, max_diff)
+    if len(a) != len(st):
+        raise LogFormatError(gt, None, f"{len(st) - len(a)} node stamps have no ground-truth pose within {max_diff} s")
+    return ref.poses[b]
+
+
+def loops_cmd(
+    graph_path: Path = typer.Argument(..., help="g2o graph with loop edges marked (gpslam edge tags)."),
+    poses: Path | None = typer.Option(None, "--poses", help="Optimised poses (g2o/TUM); default: the graph's vertices."),
+    gt: Path | None = typer.Option(None, "--gt", help="Ground-truth trajectory (TUM) for precision/recall."),
+    node_stamps: Path | None = typer.Option(None, "--node-stamps", help="'id stamp' per node, to find the nodes in --gt."),
+    trans_tol: float = typer.Option(0.20, "--trans-tol", help="Allowed violation [m] (Hess et al. 2016: 0.20)."),
+    rot_tol: float = typer.Option(1.0, "--rot-tol", help="Allowed violation [deg] (Hess et al. 2016: 1.0)."),
+    revisit_radius: float = typer.Option(1.0, "--revisit-radius", help="True revisit distance [m] (with --gt)."),
+    min_separation: int = typer.Option(30, "--min-separation", help="Smallest node-index gap of a revisit (with --gt)."),
+    max_diff: float = typer.Option(0.01, "--max-diff", help="Stamp tolerance for --node-stamps [s]."),
+    json_out: Path | None = _JSON,
+) -> None:
+    """Loop-closure precision (violated by ≤ 20 cm and ≤ 1° after optimisation); with --gt, precision and recall."""
+    from evaluation.crosscheck import load_solution
+    from evaluation.loops import loop_edges_from_graph, score_against_truth, score_loops
+    from slam.graph import read_graph
+
+    graph = read_graph(graph_path)
+    P = load_solution(poses, graph) if poses is not None else graph.poses
+    loops = loop_edges_from_graph(graph)
+    s = score_loops(loops, P, trans_tol, rot_tol)
+    out: dict[str, Any] = {"self": s.to_dict()}
+    _echo_pairs({"loops": s.n_loops, "correct": s.n_correct, "precision": s.precision})
+    if gt is not None:
+        t = score_against_truth(loops, _node_gt_poses(graph, gt, node_stamps, max_diff), revisit_radius, min_separation,
+                                trans_tol, rot_tol)
+        out["truth"] = t.to_dict()
+        _echo_pairs({"gt_true_positive": t.n_true_positive, "gt_precision": t.precision,
+                     "gt_revisit_nodes": t.n_revisit_nodes, "gt_recall": t.recall})
+    _save_json(json_out, out)
+
+
+def crosscheck_cmd(
+    graph_path: Path = typer.Argument(..., help="Pose graph (g2o or TORO)."),
+    sol_a: Path = typer.Argument(..., help="First solution (g2o vertices by id, or TUM/KITTI in node order)."),
+    sol_b: Path = typer.Argument(..., help="Second solution."),
+    names: str = typer.Option("a,b", "--names", help="Labels of the two solutions, comma-separated."),
+    json_out: Path | None = _JSON,
+) -> None:
+    """Both objectives (SE-Sync, GTSAM χ²) of two solutions and their pose differences, printed as JSON."""
+    from evaluation.crosscheck import crosscheck, load_solution
+    from slam.graph import read_graph
+
+    graph = read_graph(graph_path)
+    na, nb = (names.split(",") + ["b"])[:2]
+    out = crosscheck(graph, load_solution(sol_a, graph), load_solution(sol_b, graph), (na.strip(), nb.strip()))
+    typer.echo(json.dumps(out["graph"] | {k: out[k] for k in (na.strip(), nb.strip())} | {
+        "objective_rel_diff": out["objective_rel_diff"], "raw": out["raw"], "aligned": out["aligned"],
+        "bbox_diagonal_m": out["bbox_diagonal_m"],
+        "max_position_diff_percent_of_diagonal": out["max_position_diff_percent_of_diagonal"]}, default=float))
+    _save_json(json_out, out)
+
+
 def register(app: typer.Typer, eval_app: typer.Typer) -> None:
     eval_app.command("ape")(ape_cmd)
     eval_app.command("rpe")(rpe_cmd)
     eval_app.command("relations")(relations_cmd)
+    eval_app.command("loops")(loops_cmd)
+    eval_app.command("crosscheck")(crosscheck_cmd)
