@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "slam.cli.info_cmd",
     "slam.cli.demo_cmd",
     "slam.cli.eval_cmd",
+    "slam.cli.simulate_cmd",
 )
 
 app = typer.Typer(

@@ -1,0 +1,285 @@
+"""Collision-free robot tours through a ground-truth world, sampled at the laser rate.
+
+1. Clearance: Euclidean distance transform of the free cells (Maurer et al. 2003 via
+   ``scipy.ndimage.distance_transform_edt``), made conservative by one cell diagonal.
+2. Roadmap: a coarse (≈0.1 m) 8-connected grid graph of cells whose clearance is at least
+   ``robot_radius + margin``; edge cost = length · (1 + r_safe / clearance) keeps paths central.
+3. Coverage waypoints: farthest-point sampling of the reachable safe cells (spacing ≈ 0.6 of the
+   laser range), visited in a greedy nearest-neighbour order of geodesic (Dijkstra) distance;
+   shortest paths by Dijkstra (``scipy.sparse.csgraph``), shortened by line-of-sight string
+   pulling against the clearance grid.
+4. Revisits: the tour returns to its start (a closed loop); if the scan budget allows, it is
+   driven again (a second lap revisits everything); if it is too long, the longest prefix of the
+   tour that still returns to the start within the budget is used.
+5. Motion: a differential-drive robot turns in place at ≤ ``max_turn_rate`` to the next segment
+   heading, then drives straight at ≤ ``max_speed``; poses are sampled every 1/rate_hz seconds.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
+
+from registration.errors import ConfigError
+
+from .sensors import LaserSpec
+from .world import World
+
+__all__ = ["plan_path", "clearance_map", "sample_motion"]
+
+
+def clearance_map(world: World) -> NDArray[np.float64]:
+    """Conservative distance (m) from any point of each cell to the nearest non-free cell
+    (occupied or unknown, or outside the grid); 0 on non-free cells."""
+    free = np.pad(world.free, 1, constant_values=False)
+    edt = ndimage.distance_transform_edt(free)[1:-1, 1:-1] * world.resolution
+    return np.maximum(edt - math.sqrt(2.0) * world.resolution, 0.0) * world.free
+
+
+def _clearance_at(world: World, clear: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    iy, ix = world.cell_of(xy)
+    h, w = clear.shape
+    ok = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    out = np.zeros(len(xy))
+    out[ok] = clear[iy[ok], ix[ok]]
+    return out
+
+
+def _segment_safe(world: World, clear: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64],
+                  r_safe: float) -> bool:
+    n = max(2, int(math.ceil(np.linalg.norm(b - a) / (0.25 * world.resolution))) + 1)
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    return bool(np.all(_clearance_at(world, clear, a + s * (b - a)) >= r_safe))
+
+
+def _string_pull(world: World, clear: NDArray[np.float64], pts: NDArray[np.float64], r_safe: float) -> NDArray[np.float64]:
+    """Greedy line-of-sight shortcut of a polyline: keep a vertex only when the straight segment
+    past it would leave the safe set."""
+    if len(pts) <= 2:
+        return pts
+    out = [pts[0]]
+    i = 0
+    while i < len(pts) - 1:
+        j = i + 1
+        # grow the shortcut while it stays safe (exponential then linear search)
+        step = 1
+        while j + step < len(pts) and _segment_safe(world, clear, pts[i], pts[j + step], r_safe):
+            j += step
+            step *= 2
+        while step > 1:
+            step //= 2
+            if j + step < len(pts) and _segment_safe(world, clear, pts[i], pts[j + step], r_safe):
+                j += step
+        out.append(pts[j])
+        i = j
+    return np.asarray(out)
+
+
+def sample_motion(polyline: NDArray[np.float64], heading0: float, max_speed: float, max_turn_rate: float,
+                  dt: float, n: int | None = None) -> tuple[NDArray[np.float64], float]:
+    """Turn-in-place-then-drive motion along *polyline* ``(M, 2)`` starting with heading *heading0*.
+
+    Returns ``(poses (K, 3), duration)`` with poses sampled at ``k·dt`` (all of them, or the first
+    *n*), and the duration (s) of the whole motion. Speeds never exceed the limits.
+    """
+    seg = np.diff(polyline, axis=0)
+    lens = np.linalg.norm(seg, axis=1)
+    keep = lens > 1e-9
+    seg, lens = seg[keep], lens[keep]
+    starts = polyline[:-1][keep]
+    if len(seg) == 0:
+        poses = np.array([[polyline[0, 0], polyline[0, 1], heading0]])
+        return poses, 0.0
+    headings = np.arctan2(seg[:, 1], seg[:, 0])
+    prev = np.concatenate([[heading0], headings[:-1]])
+    turns = (headings - prev + np.pi) % (2 * np.pi) - np.pi
+    # primitives: turn k (duration |Δθ|/ω), then drive k (duration L/v)
+    t_turn = np.abs(turns) / max_turn_rate
+    t_drive = lens / max_speed
+    dur = np.column_stack([t_turn, t_drive]).ravel()
+    t_end = np.cumsum(dur)
+    total = float(t_end[-1])
+    k = int(math.floor(total / dt + 1e-9)) + 1 if n is None else n
+    t = np.arange(k) * dt
+    prim = np.minimum(np.searchsorted(t_end, t, side="right"), len(dur) - 1)
+    t0 = t_end[prim] - dur[prim]
+    frac = np.clip((t - t0) / np.where(dur[prim] > 0, dur[prim], 1.0), 0.0, 1.0)
+    frac = np.where(t >= total, 1.0, frac)
+    seg_i = prim // 2
+    is_turn = prim % 2 == 0
+    th = np.where(is_turn, prev[seg_i] + frac * turns[seg_i], headings[seg_i])
+    pos = starts[seg_i] + np.where(is_turn, 0.0, frac)[:, None] * seg[seg_i]
+    th = (th + np.pi) % (2 * np.pi) - np.pi
+    return np.column_stack([pos, th]), total
+
+
+class _Roadmap:
+    """Coarse safe-cell graph of a world with Dijkstra queries."""
+
+    def __init__(self, world: World, clear: NDArray[np.float64], r_safe: float) -> None:
+        self.world = world
+        k = max(1, int(round(0.1 / world.resolution)))
+        self.k = k
+        h, w = clear.shape
+        hh, ww = -(-h // k), -(-w // k)
+        pad = np.zeros((hh * k, ww * k))
+        pad[:h, :w] = clear
+        blocks = pad.reshape(hh, k, ww, k)
+        cmin = blocks.min(axis=(1, 3))
+        self.clear = cmin
+        safe = cmin >= r_safe
+        self.safe = safe
+        ids = -np.ones(safe.shape, dtype=np.int64)
+        ids[safe] = np.arange(int(safe.sum()))
+        self.ids = ids
+        cy, cx = np.nonzero(safe)
+        cell = world.resolution * k
+        self.xy = np.column_stack([world.origin_xy[0] + (cx + 0.5) * cell, world.origin_xy[1] + (cy + 0.5) * cell])
+        rows, cols, wts = [], [], []
+        padded = np.pad(safe, 1, constant_values=False)
+
+        def shifted(dy: int, dx: int) -> NDArray[np.bool_]:
+            return padded[1 + dy: 1 + dy + hh, 1 + dx: 1 + dx + ww]
+
+        for dyy, dxx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            ok = safe & shifted(dyy, dxx)
+            if dyy and dxx:  # diagonal step: both orthogonal neighbours must be safe too
+                ok &= shifted(dyy, 0) & shifted(0, dxx)
+            y0, x0 = np.nonzero(ok)
+            y1, x1 = y0 + dyy, x0 + dxx
+            length = cell * math.hypot(dyy, dxx)
+            cm = np.minimum(cmin[y0, x0], cmin[y1, x1])
+            rows.append(ids[y0, x0])
+            cols.append(ids[y1, x1])
+            wts.append(length * (1.0 + r_safe / np.maximum(cm, 1e-6)))
+        r, c, wv = np.concatenate(rows), np.concatenate(cols), np.concatenate(wts)
+        nn = len(self.xy)
+        self.graph = coo_matrix((np.concatenate([wv, wv]), (np.concatenate([r, c]), np.concatenate([c, r]))),
+                                shape=(nn, nn)).tocsr()
+
+    def node_at(self, xy: NDArray[np.float64]) -> int:
+        return int(np.argmin(np.linalg.norm(self.xy - xy, axis=1)))
+
+
+def plan_path(
+    world: World,
+    n_poses: int,
+    spec: LaserSpec,
+    rng: np.random.Generator,
+    *,
+    step: float | None = None,
+    max_speed: float = 0.5,
+    max_turn_rate: float = 1.0,
+    robot_radius: float = 0.2,
+    margin: float = 0.1,
+    waypoint_spacing: float | None = None,
+) -> NDArray[np.float64]:
+    """A collision-free closed tour sampled at the laser rate: ``(n_poses, 3)`` world (x, y, θ) of
+    the robot base.
+
+    Args:
+        world: the ground truth; the robot stays ``robot_radius + margin`` (m) from every occupied
+            or unknown cell.
+        n_poses: number of poses (one per scan, ``1/spec.rate_hz`` s apart).
+        spec: the laser (its rate sets the time step, its range the waypoint spacing).
+        rng: picks the start among the most open places.
+        step: maximum distance (m) per scan; overrides ``max_speed`` (= step · rate).
+        max_speed: m/s, max_turn_rate: rad/s.
+    """
+    if n_poses < 1:
+        raise ConfigError(f"need at least one pose, got {n_poses}")
+    dt = spec.period
+    if step is not None:
+        max_speed = step / dt
+    r_safe = robot_radius + margin
+    clear = clearance_map(world)
+    rm = _Roadmap(world, clear, r_safe)
+    if len(rm.xy) == 0:
+        raise ConfigError(f"world {world.name!r} has no free space with {r_safe:.2f} m clearance for the robot")
+    # the largest connected part of the roadmap
+    _, labels = connected_components(rm.graph, directed=False)
+    main = np.bincount(labels).argmax()
+    nodes = np.flatnonzero(labels == main)
+    node_clear = rm.clear.ravel()[np.flatnonzero(rm.ids.ravel() >= 0)][nodes]
+    open_nodes = nodes[node_clear >= np.quantile(node_clear, 0.9)]
+    start = int(rng.choice(open_nodes))
+    # farthest-point sampling of coverage waypoints (Euclidean), preferring open places
+    spacing = waypoint_spacing if waypoint_spacing is not None else min(0.6 * spec.range_max, 3.0)
+    cand = nodes[node_clear >= min(r_safe + 0.2, np.quantile(node_clear, 0.5))]
+    wps = [start]
+    dmin = np.linalg.norm(rm.xy[cand] - rm.xy[start], axis=1)
+    while len(wps) < 80:
+        j = int(np.argmax(dmin))
+        if dmin[j] < spacing:
+            break
+        wps.append(int(cand[j]))
+        dmin = np.minimum(dmin, np.linalg.norm(rm.xy[cand] - rm.xy[cand[j]], axis=1))
+    wps_arr = np.asarray(wps)
+    dist, pred = dijkstra(rm.graph, directed=False, indices=wps_arr, return_predecessors=True)
+    # greedy nearest-neighbour tour over geodesic distances, starting (and ending) at the start
+    order = [0]
+    left = set(range(1, len(wps)))
+    while left:
+        cur = order[-1]
+        nxt = min(left, key=lambda q: dist[cur, wps_arr[q]])
+        order.append(nxt)
+        left.remove(nxt)
+
+    def leg(a: int, b: int) -> NDArray[np.float64]:
+        """Shortest path from waypoint a to waypoint b (indices into wps), string-pulled."""
+        path = [int(wps_arr[b])]
+        src = int(wps_arr[a])
+        while path[-1] != src:
+            path.append(int(pred[a, path[-1]]))
+        return _string_pull(world, clear, rm.xy[np.asarray(path[::-1])], r_safe)
+
+    def route(seq: list[int]) -> NDArray[np.float64]:
+        parts = [leg(seq[i], seq[i + 1]) for i in range(len(seq) - 1)]
+        if not parts:
+            return rm.xy[[wps_arr[seq[0]]]]
+        return np.vstack([parts[0]] + [p[1:] for p in parts[1:]])
+
+    start_xy = rm.xy[start]
+    heading0 = float(rng.uniform(-np.pi, np.pi))
+    budget = (n_poses - 1) * dt
+    full = route(order + [0])
+    _, t_full = sample_motion(full, heading0, max_speed, max_turn_rate, dt, n=1)
+    if t_full <= budget or len(order) == 1:
+        loop = full
+    else:
+        loop = None
+        lo, hi = 1, len(order) - 1  # largest prefix k whose closed tour fits (durations grow with k)
+        while lo <= hi:
+            mid = (lo + hi) // 2
+            cand_route = route(order[: mid + 1] + [0])
+            _, t = sample_motion(cand_route, heading0, max_speed, max_turn_rate, dt, n=1)
+            if t <= budget:
+                loop, lo = cand_route, mid + 1
+            else:
+                hi = mid - 1
+        if loop is None:  # even the nearest waypoint is too far: go out and come back the same way
+            out = leg(0, order[1])
+            seglen = np.linalg.norm(np.diff(out, axis=0), axis=1)
+            reach = max(0.0, (budget - np.pi / max_turn_rate - 2 * np.pi / max_turn_rate) * max_speed / 2)
+            cum = np.concatenate([[0.0], np.cumsum(seglen)])
+            m = int(np.searchsorted(cum, reach, side="right"))
+            if m >= len(out):
+                tip = out
+            else:
+                f = (reach - cum[m - 1]) / max(seglen[m - 1], 1e-12)
+                tip = np.vstack([out[:m], out[m - 1] + f * (out[m] - out[m - 1])])
+            loop = np.vstack([tip, tip[-2::-1]]) if len(tip) > 1 else tip
+    # drive the closed loop as many times as needed, then cut at n_poses
+    laps = [loop]
+    _, t_loop = sample_motion(loop, heading0, max_speed, max_turn_rate, dt, n=1)
+    if t_loop > 0:
+        laps += [loop[1:]] * int(math.ceil(budget / t_loop))
+    poly = np.vstack(laps)
+    poses, _ = sample_motion(poly, heading0, max_speed, max_turn_rate, dt, n=n_poses)
+    assert np.allclose(poses[0, :2], start_xy)
+    return poses

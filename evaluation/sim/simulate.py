@@ -1,0 +1,207 @@
+"""Simulated 2D laser logs: a robot tour, noisy scans, drifting wheel odometry, MCAP output.
+
+Frames: ``map`` (the world / ground-truth frame), ``odom`` (wheel odometry, coincides with the
+start pose of the robot), ``base_link`` (robot base), ``laser`` (the scanner, ``base_T_sensor``).
+
+Odometry follows the sample odometry motion model of Thrun, Burgard & Fox, *Probabilistic
+Robotics* (2005), §5.4, Table 5.6: each true increment between consecutive scans is split into
+(δrot1, δtrans, δrot2) and perturbed with zero-mean Gaussians of variance
+    δrot1: α1·δrot1² + α2·δtrans²,   δtrans: α3·δtrans² + α4·(δrot1² + δrot2²),
+    δrot2: α1·δrot2² + α2·δtrans²
+(α1 rad²/rad², α2 rad²/m², α3 m²/m², α4 m²/rad², per scan increment), then integrated, so the
+error is a random walk growing with the distance travelled and the angle turned.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration import geometry as geo
+from registration.errors import ConfigError
+from registration.frame import Frame
+
+from .path import plan_path
+from .raycast import cast_rays
+from .sensors import LaserSpec
+from .world import World
+
+__all__ = ["SimulatedLog", "simulate", "write_simulated_log", "odometry_from_ground_truth", "DEFAULT_ODOM_NOISE",
+           "START_STAMP"]
+
+DEFAULT_ODOM_NOISE = (0.02, 0.002, 0.01, 0.001)  # α1…α4 of Probabilistic Robotics Table 5.6
+START_STAMP = 1_700_000_000.0  # s; fixed so that logs are reproducible bit for bit
+DEFAULT_BASE_T_SENSOR_XYT = (0.1, 0.0, 0.0)  # laser 10 cm ahead of the base centre
+
+
+@dataclass
+class SimulatedLog:
+    """A simulated run.
+
+    Attributes:
+        world, spec: the ground truth and the laser.
+        stamps: ``(N,)`` s. ground_truth: ``(N, 4, 4)`` ``map_T_base``. odometry: ``(N, 4, 4)``
+        ``odom_T_base`` (drifting). angles: ``(B,)`` rad. ranges: ``(N, B)`` m, ``inf`` = no return.
+        base_T_sensor: ``(4, 4)`` laser on the base. range_noise: σ used (m). odom_noise: α1…α4.
+        seed: the seed that reproduces the run.
+    """
+
+    world: World
+    spec: LaserSpec
+    stamps: NDArray[np.float64]
+    ground_truth: NDArray[np.float64]
+    odometry: NDArray[np.float64]
+    angles: NDArray[np.float64]
+    ranges: NDArray[np.float64]
+    base_T_sensor: NDArray[np.float64]
+    range_noise: float = 0.0
+    odom_noise: tuple[float, float, float, float] = DEFAULT_ODOM_NOISE
+    seed: int = 0
+
+    def __len__(self) -> int:
+        return int(len(self.stamps))
+
+    def sensor_poses(self) -> NDArray[np.float64]:
+        """``(N, 4, 4)`` ``map_T_laser``."""
+        return self.ground_truth @ self.base_T_sensor
+
+    def frames(self) -> Iterator[Frame]:
+        """The scans as :class:`Frame` objects (points in the laser frame, beams, odometry, truth)."""
+        c, s = np.cos(self.angles), np.sin(self.angles)
+        for i in range(len(self)):
+            r = self.ranges[i]
+            hit = np.isfinite(r)
+            pts = np.column_stack([r[hit] * c[hit], r[hit] * s[hit]])
+            yield Frame(
+                stamp=float(self.stamps[i]), points=pts, index=i, angles=self.angles, ranges=r.copy(),
+                no_return=~hit, odom=self.odometry[i].copy(), ground_truth=self.ground_truth[i].copy(),
+                base_T_sensor=self.base_T_sensor.copy(), max_range=self.spec.range_max,
+                min_range=self.spec.range_min, source=f"simulated {self.world.name} scan {i}",
+            )
+
+
+def odometry_from_ground_truth(xyt: ArrayLike, alphas: Sequence[float], rng: np.random.Generator) -> NDArray[np.float64]:
+    """Drifting odometry ``(N, 3)`` (x, y, θ in the odom frame, starting at 0) from true base poses
+    ``(N, 3)`` with the odometry motion model of Probabilistic Robotics Table 5.6 (module docstring)."""
+    p = np.asarray(xyt, dtype=np.float64).reshape(-1, 3)
+    a1, a2, a3, a4 = (float(a) for a in alphas)
+    if min(a1, a2, a3, a4) < 0:
+        raise ConfigError(f"odometry noise parameters must be >= 0, got {tuple(alphas)}")
+    d = np.diff(p[:, :2], axis=0)
+    trans = np.hypot(d[:, 0], d[:, 1])
+    dth = geo.wrap_angle(np.diff(p[:, 2]))
+    moving = trans > 1e-9  # in-place turns have no defined travel direction: all rotation in δrot2
+    rot1 = np.where(moving, geo.wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - p[:-1, 2]), 0.0)
+    rot2 = geo.wrap_angle(dth - rot1)
+    m = len(trans)
+    n = rng.standard_normal((3, m))
+    rot1_h = rot1 - n[0] * np.sqrt(a1 * rot1**2 + a2 * trans**2)
+    trans_h = trans - n[1] * np.sqrt(a3 * trans**2 + a4 * (rot1**2 + rot2**2))
+    rot2_h = rot2 - n[2] * np.sqrt(a1 * rot2**2 + a2 * trans**2)
+    th = np.concatenate([[0.0], np.cumsum(rot1_h + rot2_h)])
+    heading = th[:-1] + rot1_h
+    x = np.concatenate([[0.0], np.cumsum(trans_h * np.cos(heading))])
+    y = np.concatenate([[0.0], np.cumsum(trans_h * np.sin(heading))])
+    return np.column_stack([x, y, geo.wrap_angle(th)])
+
+
+def simulate(
+    world: World,
+    *,
+    n_scans: int,
+    spec: LaserSpec,
+    seed: int,
+    range_noise: float | None = None,
+    odom_noise: Sequence[float] = DEFAULT_ODOM_NOISE,
+    base_T_sensor: ArrayLike | None = None,
+    max_speed: float = 0.5,
+    max_turn_rate: float = 1.0,
+    robot_radius: float = 0.2,
+) -> SimulatedLog:
+    """Simulate *n_scans* scans of *spec* along a planned closed tour through *world*.
+
+    Args:
+        range_noise: Gaussian range σ (m); the preset's ``noise_std`` when None.
+        odom_noise: α1…α4 of the odometry motion model (module docstring).
+        base_T_sensor: 4×4 laser pose on the base (default 0.1 m ahead, facing forward).
+        max_speed (m/s), max_turn_rate (rad/s), robot_radius (m): see :func:`plan_path`.
+
+    The path, the range noise and the odometry noise use independent random streams spawned
+    from *seed*, so changing a noise level does not change the path.
+    """
+    if n_scans < 1:
+        raise ConfigError(f"--scans must be >= 1, got {n_scans}")
+    sigma = spec.noise_std if range_noise is None else float(range_noise)
+    if sigma < 0 or not np.isfinite(sigma):
+        raise ConfigError(f"range noise must be a finite number >= 0, got {range_noise}")
+    alphas = tuple(float(a) for a in odom_noise)
+    if len(alphas) != 4:
+        raise ConfigError(f"odometry noise needs four values α1..α4, got {len(alphas)}")
+    b_T_s = geo.xytheta_to_matrix(np.asarray(DEFAULT_BASE_T_SENSOR_XYT)) if base_T_sensor is None else np.asarray(base_T_sensor, dtype=np.float64)
+    if b_T_s.shape != (4, 4) or not geo.is_pose(b_T_s):
+        raise ConfigError("base_T_sensor must be a 4×4 rigid transform")
+    path_ss, range_ss, odom_ss = np.random.SeedSequence(seed).spawn(3)
+    xyt = plan_path(world, n_scans, spec, np.random.default_rng(path_ss), max_speed=max_speed,
+                    max_turn_rate=max_turn_rate, robot_radius=robot_radius)
+    gt = geo.xytheta_to_matrix(xyt)
+    sensor_xyt = geo.matrix_to_xytheta(gt @ b_T_s)
+    ranges = cast_rays(world, sensor_xyt, spec, rng=np.random.default_rng(range_ss), range_noise=sigma)
+    odom = geo.xytheta_to_matrix(odometry_from_ground_truth(xyt, alphas, np.random.default_rng(odom_ss)))
+    stamps = START_STAMP + np.arange(n_scans) * spec.period
+    return SimulatedLog(world=world, spec=spec, stamps=stamps, ground_truth=gt, odometry=odom, angles=spec.angles(),
+                        ranges=ranges, base_T_sensor=b_T_s, range_noise=sigma, odom_noise=alphas, seed=seed)
+
+
+def map_paths(mcap_path: str | Path) -> tuple[Path, Path]:
+    """Where :func:`write_simulated_log` puts the ground-truth map: ``<stem>_map.yaml``/``.pgm``."""
+    p = Path(mcap_path)
+    return p.with_name(f"{p.stem}_map.yaml"), p.with_name(f"{p.stem}_map.pgm")
+
+
+def write_simulated_log(sim: SimulatedLog, mcap_path: str | Path) -> None:
+    """Write the run as a ROS 2 MCAP log plus the ground-truth map beside it.
+
+    Topics: ``/scan`` (sensor_msgs/LaserScan, frame ``laser``), ``/odom`` (nav_msgs/Odometry
+    ``odom → base_link``, with the odometry twist), ``/tf`` (``odom → base_link``), ``/tf_static``
+    (``base_link → laser``), ``/ground_truth`` (nav_msgs/Odometry ``map → base_link``). The map
+    is ``<stem>_map.pgm`` + ``<stem>_map.yaml`` (map_server). Nothing appears under the final
+    names unless everything was written.
+    """
+    from slam.logs.mcap_writer import McapLogWriter
+
+    out = Path(mcap_path)
+    yaml_path, pgm_path = map_paths(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+    try:
+        sim.world.save(tmp / yaml_path.name, image_name=pgm_path.name)
+        spec = sim.spec
+        odo_xyt = geo.matrix_to_xytheta(sim.odometry)
+        dt = np.diff(sim.stamps)
+        step = geo.relative(sim.odometry[:-1], sim.odometry[1:])
+        vel = np.zeros((len(sim), 6))
+        if len(sim) > 1:
+            vel[1:, 0] = step[:, 0, 3] / dt
+            vel[1:, 1] = step[:, 1, 3] / dt
+            vel[1:, 5] = geo.wrap_angle(np.diff(odo_xyt[:, 2])) / dt
+        with McapLogWriter(out) as w:
+            w.write_tf(float(sim.stamps[0]), [("base_link", "laser", sim.base_T_sensor)], static=True)
+            for i in range(len(sim)):
+                t = float(sim.stamps[i])
+                w.write_tf(t, [("odom", "base_link", sim.odometry[i])])
+                w.write_odometry("/odom", t, "odom", "base_link", sim.odometry[i], twist=vel[i])
+                w.write_odometry("/ground_truth", t, "map", "base_link", sim.ground_truth[i])
+                w.write_scan("/scan", t, "laser", spec.angle_min, spec.angle_increment, spec.range_min,
+                             spec.range_max, sim.ranges[i])
+        # the MCAP is complete under its final name; the finished map files follow by rename
+        os.replace(tmp / pgm_path.name, pgm_path)
+        os.replace(tmp / yaml_path.name, yaml_path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
