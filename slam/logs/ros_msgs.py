@@ -125,7 +125,7 @@ def stamp_to_ns(stamp: float) -> int:
 
 def time_to_stamp(t: Any) -> float:
     """A ``builtin_interfaces/Time`` (or ROS 1 ``time``) → float seconds."""
-    return float(t.sec) + float(t.nanosec) * 1e-9
+    return float(t.sec) + int(t.nanosec) / 1e9
 
 
 def header_stamp(msg: Any) -> float:
@@ -334,7 +334,8 @@ def decode_pointcloud2(msg: Any) -> Array:
             col = col[..., 0]
         out[:, j] = col.reshape(-1)
     if n:
-        ok = np.isfinite(out).all(axis=1)
+        fin = np.isfinite(out)
+        ok = fin[:, 0] & fin[:, 1] & fin[:, 2]  # cheaper than fin.all(axis=1)
         if not ok.all():
             out = out[ok]
     return out
