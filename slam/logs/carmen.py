@@ -605,9 +605,11 @@ class CarmenReader(LogReader):
         for fr in self._stream(counts, odom_fields):
             scans += 1
             beams = max(beams, int(fr.ranges.shape[0]))
-            if start is None:
+            # min/max, not first/last: the Intel log's ipc_timestamps step back 631 times
+            if start is None or fr.stamp < start:
                 start = fr.stamp
-            end = fr.stamp
+            if end is None or fr.stamp > end:
+                end = fr.stamp
         topic = self.sensor_topic
         topics = [TopicInfo(name=k, msgtype=k, count=v) for k, v in counts.items()]
         return LogInfo(
