@@ -1,0 +1,57 @@
+"""A global Gaussian occupancy grid in information form, and the hyperparameter policy.
+
+Cells hold ``info = Σ μᵢ/σᵢ²`` and ``prec = Σ 1/σᵢ²`` (BCM, see :mod:`mapping.bcm`); μ is the GP
+latent occupancy (+1 occupied, −1 free), dimensionless. The grid lives in the world frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .bcm import MIN_VARIANCE, mean_variance, probit_squash
+from .config import GPConfig
+from .gp import GPHyperparameters, fit_hyperparameters
+from .grid import GridGeometry
+
+Array = NDArray[np.float64]
+
+
+class GaussianGrid:
+    """(info, prec) arrays of shape ``geometry.shape`` indexed [iy, ix]."""
+
+    def __init__(self, geometry: GridGeometry) -> None:
+        self.geometry = geometry
+        self.info = np.zeros(geometry.shape)
+        self.prec = np.zeros(geometry.shape)
+
+    def fuse_window(self, rows: slice, cols: slice, sel: NDArray[np.bool_] | NDArray[np.int64],
+                    mean: Array, var: Array) -> None:
+        """BCM-fuse estimates into the cells ``window[sel]`` (sel: mask or flat indices of the window)."""
+        if isinstance(sel, np.ndarray) and sel.dtype == bool:
+            sel = np.flatnonzero(sel)
+        w = cols.stop - cols.start
+        g = (rows.start + sel // w) * self.geometry.shape[1] + cols.start + sel % w
+        p = 1.0 / np.maximum(var, MIN_VARIANCE)
+        self.info.reshape(-1)[g] += mean * p  # window indices are unique: fancy += is exact
+        self.prec.reshape(-1)[g] += p
+
+    def mean_variance(self, prior_variance: float = np.inf) -> tuple[Array, Array]:
+        return mean_variance(self.info, self.prec, prior_variance)
+
+    def to_map(self, alpha: float = 100.0, beta: float = 0.0, method: str = "fastgpom"):
+        """The :class:`~mapping.occupancy_map.OccupancyMap` (μ, σ², p) of this grid."""
+        from .occupancy_map import OccupancyMap
+
+        mean, var = self.mean_variance()
+        return OccupancyMap(self.geometry, probability=probit_squash(mean, var, alpha, beta), mean=mean,
+                            variance=var, observed=self.prec > 0, method=method)
+
+
+def initial_hyperparameters(cfg: GPConfig, X: Array, y: Array) -> GPHyperparameters:
+    """The configured constants, or the LML optimum on these (first-frame) samples, ≤ fit_max_points."""
+    start = GPHyperparameters(cfg.nu, cfg.length_scale, cfg.sigma_f, cfg.sigma_n)
+    if cfg.hyperparameters == "fixed" or len(X) < 3:
+        return start
+    stride = max(1, int(np.ceil(len(X) / cfg.fit_max_points)))
+    return fit_hyperparameters(X[::stride], y[::stride], start, restarts=cfg.fit_restarts)
