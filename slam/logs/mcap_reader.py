@@ -3,7 +3,8 @@ odometry, ground truth and TF.
 
 The container is read with the ``mcap`` library, streaming: with a summary section (chunk
 indexes) the ``SeekingReader`` visits chunks in log-time order holding one or a few chunks at
-a time; without one (a file written by a streaming recorder) the file is read linearly.
+a time; without one (a file written by a streaming recorder, or a truncated file) the file is read
+linearly, in file order (recorders write in arrival order).
 Messages are decoded with types built from the schemas carried in the file
 (``ros2msg`` / ``ros2idl`` / ``ros1msg``), registered with rosbags' ``get_types_from_msg`` /
 ``get_types_from_idl``, so files written by any ROS 2 tool decode, not only our own. Chunk
@@ -57,7 +58,8 @@ class McapReader(RosLogReader):
         fh.seek(0)
         if summary is not None and summary.chunk_indexes:
             return SeekingReader(fh, validate_crcs=True).iter_messages(topics=topics, log_time_order=True)
-        return NonSeekingReader(fh, validate_crcs=True).iter_messages(topics=topics)
+        # File order: log_time_order=True would make the mcap library load the whole file to sort it.
+        return NonSeekingReader(fh, validate_crcs=True).iter_messages(topics=topics, log_time_order=False)
 
     def _open(self):
         try:
@@ -90,7 +92,7 @@ class McapReader(RosLogReader):
                 counts = dict(summary.statistics.channel_message_counts)
             else:
                 fh.seek(0)
-                for schema, channel, _msg in self._guard(self._records(fh, None), fh):
+                for schema, channel, _msg in self._guard(self._records(fh, None), fh, {}):
                     channels[channel.id] = channel
                     if schema is not None:
                         schemas[schema.id] = schema
@@ -118,7 +120,7 @@ class McapReader(RosLogReader):
 
     def _guard(self, it: Iterator, fh, counts: dict[str, int] | None = None) -> Iterator:
         """Re-raise container errors as LogFormatError with the byte offset and last good message."""
-        last = "the first message"
+        last = "before the first message"
         while True:
             try:
                 item = next(it)
@@ -129,13 +131,12 @@ class McapReader(RosLogReader):
                     pos = fh.tell()
                 except (OSError, ValueError):
                     pos = -1
-                raise LogFormatError(
-                    self.path, f"byte offset {pos} (after {last})", f"corrupt or truncated MCAP: {type(exc).__name__}: {exc}"
-                ) from None
+                why = f"{type(exc).__name__}: {exc}".rstrip(": ")
+                raise LogFormatError(self.path, f"byte offset {pos} ({last})", f"corrupt or truncated MCAP: {why}") from None
             if counts is not None:
                 topic = item[1].topic
                 counts[topic] = counts.get(topic, -1) + 1
-                last = f"{topic} message {counts[topic]}"
+                last = f"after {topic} message {counts[topic]}"
             yield item
 
     def topics(self) -> list[TopicInfo]:
