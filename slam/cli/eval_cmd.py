@@ -42,7 +42,7 @@ class _Fmt(str, Enum):
 
 def fmt_num(v: Any) -> str:
     """How numbers are printed: 10 significant digits (ints as ints)."""
-    if isinstance(v, bool) or v is None:
+    if isinstance(v, (bool, str)) or v is None:
         return str(v)
     if isinstance(v, int):
         return str(v)
@@ -244,9 +244,30 @@ def crosscheck_cmd(
     _save_json(json_out, out)
 
 
+def report_cmd(
+    result_dir: Path = typer.Argument(..., help="Folder written by 'slam run' (trajectory.tum, graph.g2o, map.npz, summary.json ...)."),
+    gt: Path | None = typer.Option(None, "--gt", help="Ground-truth trajectory (TUM)."),
+    relations: Path | None = typer.Option(None, "--relations", help="Kümmerle relations file."),
+    gt_map: Path | None = typer.Option(None, "--gt-map", help="Ground-truth map (map_server YAML)."),
+    out: Path | None = typer.Option(None, "--out", help="Output folder (default: RESULT_DIR)."),
+) -> None:
+    """Write report.html (figures inline) and metrics.json; print the metrics as 'key: value' lines."""
+    from evaluation.report import flatten_metrics, write_report
+
+    rep = write_report(result_dir, gt, relations, gt_map, out)
+    for k, v in flatten_metrics(rep.metrics).items():
+        typer.echo(f"{k}: {fmt_num(v)}")
+    for n in rep.notes:
+        typer.echo(f"note: {n}")
+    od = out if out is not None else result_dir
+    typer.echo(f"report: {od / 'report.html'}")
+    typer.echo(f"metrics: {od / 'metrics.json'}")
+
+
 def register(app: typer.Typer, eval_app: typer.Typer) -> None:
     eval_app.command("ape")(ape_cmd)
     eval_app.command("rpe")(rpe_cmd)
     eval_app.command("relations")(relations_cmd)
     eval_app.command("loops")(loops_cmd)
     eval_app.command("crosscheck")(crosscheck_cmd)
+    eval_app.command("report")(report_cmd)

@@ -1,0 +1,171 @@
+"""Report figures as PNG bytes (matplotlib, Agg back end, imported lazily).
+
+Every figure labels its axes with units, uses fonts readable at report size, and — for anything
+drawn in the world frame — an equal aspect ratio so that metres look like metres. Maps are drawn
+with row 0 at the bottom (the grid convention of docs/ARCHITECTURE.md: ``origin="lower"``).
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+__all__ = ["trajectory_map_png", "error_along_png", "roc_png", "timings_png", "map_png"]
+
+_RC = {
+    "font.size": 12,
+    "axes.titlesize": 14,
+    "axes.labelsize": 12,
+    "legend.fontsize": 10,
+    "xtick.labelsize": 10,
+    "ytick.labelsize": 10,
+    "figure.dpi": 110,
+}
+
+_COLOURS = {"estimate": "#d62728", "odometry": "#7f7f7f", "ground truth": "#1f77b4"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", bbox_inches="tight")
+    _plt().close(fig)
+    return buf.getvalue()
+
+
+def _extent(shape: tuple[int, ...], resolution: float, origin: Sequence[float]) -> list[float]:
+    h, w = shape[:2]
+    return [origin[0], origin[0] + w * resolution, origin[1], origin[1] + h * resolution]
+
+
+def trajectory_map_png(
+    paths: dict[str, Array],
+    probability: Array | None = None,
+    resolution: float | None = None,
+    origin: Sequence[float] | None = None,
+    loops: Array | None = None,
+    title: str = "Trajectory",
+    bg_label: str = "occupancy probability",
+) -> bytes:
+    """Trajectories ``{label: (N, 2+) positions [m]}`` over the occupancy-probability map (if given).
+
+    *loops* is an optional ``(M, 2, 2)`` array of loop-closure segments (world x, y of both nodes).
+    """
+    plt = _plt()
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(8, 7))
+        if probability is not None and resolution is not None and origin is not None:
+            cmap = plt.get_cmap("gray_r").copy()
+            cmap.set_bad("#dfe8f0")  # unknown cells (NaN): pale blue-grey
+            im = ax.imshow(np.asarray(probability, float), origin="lower", cmap=cmap, vmin=0.0, vmax=1.0,
+                           extent=_extent(probability.shape, resolution, origin), interpolation="nearest")
+            cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+            cb.set_label(bg_label)
+        if loops is not None and len(loops):
+            segs = np.asarray(loops, float)
+            xs = np.column_stack([segs[:, 0, 0], segs[:, 1, 0], np.full(len(segs), np.nan)]).ravel()
+            ys = np.column_stack([segs[:, 0, 1], segs[:, 1, 1], np.full(len(segs), np.nan)]).ravel()
+            ax.plot(xs, ys, color="#2ca02c", lw=1.5, alpha=0.9, label=f"loop closures ({len(segs)})")
+            ax.plot(segs[:, :, 0].ravel(), segs[:, :, 1].ravel(), "o", color="#2ca02c", ms=3, alpha=0.9)
+        for label, P in paths.items():
+            P = np.asarray(P, float)
+            if len(P) == 0:
+                continue
+            c = _COLOURS.get(label)
+            style = dict(ls="--", lw=1.3, zorder=5) if label == "ground truth" else dict(lw=1.4, zorder=4)
+            ax.plot(P[:, 0], P[:, 1], color=c, label=label, **style)
+            ax.plot(P[0, 0], P[0, 1], "o", color=c or "k", ms=5, zorder=6)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_title(title)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), ncol=4, frameon=False)  # below: never hides the map
+        return _png(fig)
+
+
+def error_along_png(series: dict[str, tuple[Array, Array]], ylabel: str, title: str, points: bool = False) -> bytes:
+    """Error curves ``{label: (time [s], error)}`` against time since the first stamp (*points*: markers only)."""
+    plt = _plt()
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(9, 4))
+        t0 = min(float(np.min(t)) for t, _ in series.values() if len(t))
+        for label, (t, e) in series.items():
+            order = np.argsort(t)
+            style = dict(ls="none", marker=".", ms=3, alpha=0.6) if points else dict(lw=1.0)
+            ax.plot(np.asarray(t)[order] - t0, np.asarray(e)[order], color=_COLOURS.get(label),
+                    label=f"{label} (rmse {np.sqrt(np.mean(np.square(e))):.3g})", **style)
+        ax.set_xlabel("time since start [s]")
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.set_ylim(bottom=0)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="best")
+        return _png(fig)
+
+
+def roc_png(curves: dict[str, tuple[Array, Array, float]], title: str = "Map ROC against ground truth") -> bytes:
+    """ROC curves ``{label: (fpr, tpr, auc)}`` with the chance diagonal."""
+    plt = _plt()
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(5.5, 5.5))
+        ax.plot([0, 1], [0, 1], ls="--", color="#999999", lw=1, label="chance (AUC 0.5)")
+        for label, (fpr, tpr, auc) in curves.items():
+            ax.plot(fpr, tpr, lw=2, label=f"{label} (AUC {auc:.3f})")
+        ax.set_xlim(-0.01, 1.0)
+        ax.set_ylim(0.0, 1.02)
+        ax.set_aspect("equal")
+        ax.set_xlabel("false-positive rate (free cells called occupied)")
+        ax.set_ylabel("true-positive rate")
+        ax.set_title(title)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="lower right")
+        return _png(fig)
+
+
+def timings_png(timings: dict[str, float], title: str = "Stage timings") -> bytes:
+    """Horizontal bars of wall-clock seconds per pipeline stage, largest first."""
+    plt = _plt()
+    total = timings.get("total")
+    items = sorted(((k, v) for k, v in timings.items() if k != "total"), key=lambda kv: kv[1])
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(8, 0.5 * len(items) + 1.5))
+        names = [k for k, _ in items]
+        vals = np.array([v for _, v in items], float)
+        bars = ax.barh(names, vals, color="#4c72b0")
+        for b, v in zip(bars, vals):
+            ax.text(b.get_width(), b.get_y() + b.get_height() / 2, f" {v:.3g} s", va="center", fontsize=10)
+        ax.set_xlabel("wall-clock time [s]")
+        ax.set_title(f"{title} (total {total if total is not None else vals.sum():.3g} s)")
+        ax.set_xlim(0, vals.max() * 1.2 if vals.size and vals.max() > 0 else 1)
+        ax.grid(True, axis="x", alpha=0.3)
+        return _png(fig)
+
+
+def map_png(image: Array, resolution: float, origin: Sequence[float], label: str, title: str, cmap: str = "viridis") -> bytes:
+    """A scalar grid (e.g. the GP variance) in world coordinates with a colour bar."""
+    plt = _plt()
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(8, 7))
+        im = ax.imshow(np.asarray(image, float), origin="lower", cmap=cmap,
+                       extent=_extent(image.shape, resolution, origin), interpolation="nearest")
+        cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+        cb.set_label(label)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_title(title)
+        return _png(fig)

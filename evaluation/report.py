@@ -1,0 +1,413 @@
+"""``slam eval report``: metrics and a self-contained HTML report for one result folder.
+
+Reads whatever of the pipeline outputs exist in the folder (DESIGN.md "Outputs of slam run"):
+``trajectory.tum`` (optimised pose of every scan), ``odometry.tum``, ``graph.g2o`` (loop edges
+marked), ``map.npz`` (``mean``, ``variance``, ``probability``, ``resolution``, ``origin``) and
+``summary.json`` (stage timings under ``timings`` / ``stage_timings`` / ``timings_s``, seconds).
+Optional inputs: a ground-truth trajectory (APE after SE(2)/SE(3) Umeyama alignment, RPE over one
+frame, loop precision/recall), Kümmerle relations (with the published numbers) and a ground-truth
+map (map ROC/AUC, after moving the map into the ground-truth frame with the trajectory alignment).
+
+Writes ``report.html`` (every figure inline as a base64 PNG, no external files) and
+``metrics.json`` (nested; the console prints the same numbers flattened as ``a.b.c: value``).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as geo
+from registration.atomic import atomic_open
+from registration.errors import GpslamError, MapFormatError
+
+Array = NDArray[np.float64]
+
+__all__ = ["Figure", "Report", "build_report", "write_report", "flatten_metrics", "resample_classes"]
+
+
+@dataclass
+class Figure:
+    """One report figure: title, PNG bytes and a one-line caption."""
+
+    title: str
+    png: bytes
+    caption: str = ""
+
+
+@dataclass
+class Report:
+    """Everything a report holds: nested metrics, figures and notes on inputs that were missing."""
+
+    metrics: dict[str, Any] = field(default_factory=dict)
+    figures: list[Figure] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def flatten_metrics(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` → ``{"a.b": 1}`` (lists and None are left out; they are not printed)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten_metrics(v, key + "."))
+        elif isinstance(v, (bool, int, float, str)) and v is not None:
+            out[key] = v
+    return out
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-safe copy: numpy scalars to Python, NaN/inf to None."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _timings(summary: dict[str, Any]) -> dict[str, float]:
+    """Stage → seconds from ``summary.json`` (first of the usual keys that maps names to numbers)."""
+    for key in ("timings", "stage_timings", "timings_s", "stage_times", "timing"):
+        val = summary.get(key)
+        if isinstance(val, dict):
+            out = {}
+            for k, v in val.items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    out[str(k)] = float(v)
+                elif isinstance(v, dict):
+                    for sub in ("seconds", "time_s", "total_s", "total"):
+                        if isinstance(v.get(sub), (int, float)):
+                            out[str(k)] = float(v[sub])
+                            break
+            if out:
+                return out
+    return {}
+
+
+def resample_classes(gt_classes: NDArray[np.int8], gt_resolution: float, gt_origin: Array, shape: tuple[int, int],
+                     resolution: float, origin: Array, gt_T_map: Array | None = None) -> NDArray[np.int8]:
+    """Ground-truth classes at the cell centres of a map grid (nearest cell; −1 outside the ground truth).
+
+    Cell centre ``(iy, ix)`` = origin + ((ix + ½)·res, (iy + ½)·res) in the map frame, moved into
+    the ground-truth frame by *gt_T_map* (4×4, default identity) and then into the ground-truth
+    grid (whose origin may carry a yaw, as map_server allows).
+    """
+    h, w = shape
+    iy, ix = np.mgrid[0:h, 0:w]
+    pts = np.column_stack([origin[0] + (ix.ravel() + 0.5) * resolution, origin[1] + (iy.ravel() + 0.5) * resolution])
+    if gt_T_map is not None:
+        pts = geo.transform_points(gt_T_map, pts)
+    g_origin = np.asarray(gt_origin, float)
+    yaw = float(g_origin[2]) if g_origin.size > 2 else 0.0
+    local = (pts - g_origin[:2]) @ geo.rot2(yaw)  # rotate by −yaw: row-vector form of R(yaw)ᵀ p
+    gx = np.floor(local[:, 0] / gt_resolution).astype(np.int64)
+    gy = np.floor(local[:, 1] / gt_resolution).astype(np.int64)
+    H, W = gt_classes.shape
+    ok = (gx >= 0) & (gx < W) & (gy >= 0) & (gy < H)
+    out = np.full(h * w, -1, np.int8)
+    out[ok] = gt_classes[gy[ok], gx[ok]]
+    return out.reshape(h, w)
+
+
+def _load_map(path: Path) -> dict[str, Any]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise MapFormatError(path, None, f"cannot read npz: {exc}") from None
+    for k in ("probability", "resolution", "origin"):
+        if k not in data:
+            raise MapFormatError(path, None, f"missing array {k!r} (expected mean, variance, probability, resolution, origin)")
+    return data
+
+
+def _node_stamps(result_dir: Path, graph: Any, traj: Any) -> Array | None:
+    """Scan stamps of the graph nodes: ``node_stamps.txt`` ('id stamp'), else nodes whose optimised pose
+    equals a pose of ``trajectory.tum`` (within 1e-6 m / 1e-6) — the pipeline writes both from one solution."""
+    f = result_dir / "node_stamps.txt"
+    ids = graph.node_ids
+    if f.exists():
+        rows = [r.split() for r in f.read_text().splitlines() if r.strip() and not r.startswith("#")]
+        table = {int(float(a)): float(b) for a, b in rows}
+        if all(int(i) in table for i in ids):
+            return np.array([table[int(i)] for i in ids])
+        return None
+    if traj is None:
+        return None
+    from scipy.spatial import cKDTree
+
+    P = graph.poses
+    if not np.all(np.isfinite(P)):
+        return None
+    d, k = cKDTree(traj.positions).query(P[:, :3, 3])
+    same_rot = np.abs(traj.poses[k, :3, :3] - P[:, :3, :3]).max(axis=(1, 2)) <= 1e-6
+    if np.all(d <= 1e-6) and np.all(same_rot):
+        return traj.stamps[k]
+    return None
+
+
+def build_report(
+    result_dir: str | os.PathLike[str],
+    gt: str | os.PathLike[str] | None = None,
+    relations: str | os.PathLike[str] | None = None,
+    gt_map: str | os.PathLike[str] | None = None,
+    max_diff: float = 0.01,
+) -> Report:
+    """Compute the metrics and figures for *result_dir* (see the module docstring)."""
+    from slam.trajectory_io import read_tum
+
+    from . import plots
+    from .ape_rpe import evaluate_ape, evaluate_rpe
+
+    rd = Path(result_dir)
+    if not rd.is_dir():
+        raise MapFormatError(rd, None, "result folder does not exist")
+    rep = Report()
+    m = rep.metrics
+    m["result_dir"] = str(rd)
+
+    trajs: dict[str, Any] = {}
+    for label, name in (("estimate", "trajectory.tum"), ("odometry", "odometry.tum")):
+        if (rd / name).exists():
+            t = read_tum(rd / name)
+            trajs[label] = t
+            m.setdefault("trajectories", {})[label] = {
+                "poses": len(t), "duration_s": float(t.stamps[-1] - t.stamps[0]) if len(t) else 0.0,
+                "path_length_m": t.path_length(),
+            }
+        else:
+            rep.notes.append(f"{name} not found")
+
+    # --- ground truth: APE / RPE
+    gt_traj = read_tum(gt) if gt is not None else None
+    aligned_paths: dict[str, Array] = {}
+    gt_T_map: Array | None = None
+    ape_series: dict[str, tuple[Array, Array]] = {}
+    if gt_traj is not None:
+        aligned_paths["ground truth"] = gt_traj.positions
+        for label, t in trajs.items():
+            a = evaluate_ape(t, gt_traj, align="se3", max_diff=max_diff)
+            r = evaluate_rpe(t, gt_traj, delta=1, delta_unit="frames", max_diff=max_diff)
+            m.setdefault("ape_trans_m", {})[label] = {k: a.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": a.n_matched}
+            m.setdefault("rpe_trans_m", {})[label] = {k: r.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": len(r.errors)}
+            ape_series[label] = (a.stamps, a.errors)
+            assert a.est_aligned is not None and a.alignment is not None
+            aligned_paths[label] = a.est_aligned.positions
+            if label == "estimate":
+                gt_T_map = a.alignment.transform
+    else:
+        rep.notes.append("no ground-truth trajectory (--gt): APE/RPE not computed")
+        aligned_paths = {k: v.positions for k, v in trajs.items()}
+
+    # --- relations
+    rel_series: dict[str, tuple[Array, Array]] = {}
+    if relations is not None:
+        from .published import PUBLISHED, recognise_dataset
+        from .relations import evaluate_relations, read_relations
+
+        rel = read_relations(relations)
+        ds = recognise_dataset(relations)
+        m["relations"] = {"file": str(relations), "dataset": ds or "unknown"}
+        for label, t in trajs.items():
+            res = evaluate_relations(t, rel)
+            m["relations"][label] = res.to_dict()
+            rel_series[label] = (rel.t2[res.used], res.trans_errors)
+        if ds:
+            m["relations"]["published"] = {
+                meth: {k: {"mean": v[0], "std": v[1]} for k, v in vals.items()} for meth, vals in PUBLISHED[ds].items()
+            }
+
+    # --- graph and loops
+    graph = None
+    loops_xy: Array | None = None
+    if (rd / "graph.g2o").exists():
+        from slam.graph import read_graph
+
+        from .loops import loop_edges_from_graph, score_against_truth, score_loops
+
+        graph = read_graph(rd / "graph.g2o")
+        kinds = graph.edge_kinds
+        m["graph"] = {"nodes": graph.num_nodes, "edges": graph.num_edges,
+                      "odometry_edges": kinds.count("odometry"), "loop_edges": kinds.count("loop")}
+        loops = loop_edges_from_graph(graph)
+        if graph.has_initial_guess:
+            s = score_loops(loops, graph.poses)
+            m["loops"] = s.to_dict()
+            P = graph.poses
+            loops_xy = np.stack([P[loops.ii, :2, 3], P[loops.jj, :2, 3]], axis=1) if len(loops) else None
+            if gt_traj is not None:
+                st = _node_stamps(rd, graph, trajs.get("estimate"))
+                if st is None:
+                    rep.notes.append("graph nodes could not be tied to scan stamps (no node_stamps.txt and vertex poses "
+                                     "not found in trajectory.tum): loop recall not computed")
+                else:
+                    from .trajectory import nearest_indices
+
+                    a_idx, b_idx = nearest_indices(st, gt_traj.stamps, max_diff)
+                    if len(a_idx) == len(st):
+                        t_score = score_against_truth(loops, gt_traj.poses[b_idx])
+                        m["loops_vs_truth"] = t_score.to_dict()
+                    else:
+                        rep.notes.append("some graph nodes have no ground-truth pose: loop recall not computed")
+        else:
+            rep.notes.append("graph.g2o has no vertex poses: loop precision not computed")
+    else:
+        rep.notes.append("graph.g2o not found")
+
+    # --- map and ROC
+    mp = None
+    gt_bg: tuple[Array, float, Array] | None = None
+    if gt_map is not None:
+        from mapping.mapserver import read_map_server
+
+        gmap = read_map_server(gt_map)
+        gcls = np.asarray(gmap.classes)
+        gt_bg = (np.where(gcls == -1, np.nan, np.clip(gcls, 0, 100) / 100.0), float(gmap.resolution),
+                 np.asarray(gmap.origin, float))
+    if (rd / "map.npz").exists():
+        mp = _load_map(rd / "map.npz")
+        prob = np.asarray(mp["probability"], float)
+        res_m = float(np.asarray(mp["resolution"]).reshape(-1)[0])
+        origin = np.asarray(mp["origin"], float).reshape(-1)
+        m["map"] = {"rows": int(prob.shape[0]), "cols": int(prob.shape[1]), "resolution_m": res_m}
+        if gt_map is not None:
+            from mapping.roc import map_roc
+
+            cls = resample_classes(gmap.classes, gmap.resolution, gmap.origin, prob.shape, res_m, origin, gt_T_map)
+            try:
+                fpr, tpr, auc = map_roc(prob, cls)
+                m["map"]["auc"] = auc
+                m["map"]["gt_cells_compared"] = int(np.sum((cls != -1) & np.isfinite(prob)))
+                m["map"]["gt_frame"] = "aligned by the trajectory's SE(d) Umeyama fit" if gt_T_map is not None else "map frame"
+                rep.figures.append(Figure("Map ROC", plots.roc_png({"map": (fpr, tpr, auc)}),
+                                          "Occupancy probability of each map cell scored against the ground-truth map "
+                                          "(unknown ground-truth cells ignored)."))
+            except GpslamError as exc:
+                rep.notes.append(f"map ROC not computed: {exc}")
+    else:
+        rep.notes.append("map.npz not found")
+        if gt_map is not None:
+            rep.notes.append("--gt-map given but there is no map.npz: ROC not computed")
+
+    # --- timings
+    if (rd / "summary.json").exists():
+        try:
+            summary = json.loads((rd / "summary.json").read_text())
+        except json.JSONDecodeError as exc:
+            raise MapFormatError(rd / "summary.json", f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
+        tm = _timings(summary) if isinstance(summary, dict) else {}
+        if tm:
+            m["timings_s"] = tm
+        else:
+            rep.notes.append("summary.json has no stage timings")
+    else:
+        rep.notes.append("summary.json not found")
+
+    # --- figures (trajectory first)
+    figs: list[Figure] = []
+    if aligned_paths:
+        if gt_traj is not None:
+            bg = gt_bg if gt_bg is not None else (None, None, None)
+            figs.append(Figure(
+                "Trajectories in the ground-truth frame",
+                plots.trajectory_map_png(aligned_paths, *bg, None, "Trajectories aligned to the ground truth",
+                                         bg_label="ground-truth occupancy"),
+                "Estimated and odometry trajectories after SE(d) Umeyama alignment to the ground truth"
+                + (", over the ground-truth map." if gt_bg is not None else "."),
+            ))
+        if mp is not None or gt_traj is None:
+            figs.append(Figure(
+                "Trajectory over the map",
+                plots.trajectory_map_png(
+                    {k: v.positions for k, v in trajs.items()},
+                    None if mp is None else np.asarray(mp["probability"], float),
+                    None if mp is None else float(np.asarray(mp["resolution"]).reshape(-1)[0]),
+                    None if mp is None else np.asarray(mp["origin"], float).reshape(-1),
+                    loops_xy, "Trajectory over the occupancy map" if mp is not None else "Trajectory"),
+                "Optimised trajectory, odometry and loop closures (green) in the map frame"
+                + (", over the occupancy probability." if mp is not None else "."),
+            ))
+    if ape_series:
+        figs.append(Figure("Error along the trajectory",
+                           plots.error_along_png(ape_series, "APE translation [m]", "Absolute position error (SE(d)-aligned)"),
+                           "Translational APE of each pose against the ground truth."))
+    elif rel_series:
+        figs.append(Figure("Relation error along the trajectory",
+                           plots.error_along_png(rel_series, "relation translation error [m]", "Kümmerle relation error",
+                                                 points=True),
+                           "Translational error of each ground-truth relation, at the stamp of its second scan."))
+    rep.figures = figs + rep.figures
+    if mp is not None and "variance" in mp:
+        rep.figures.append(Figure("Map variance", plots.map_png(np.asarray(mp["variance"], float),
+                                                                float(np.asarray(mp["resolution"]).reshape(-1)[0]),
+                                                                np.asarray(mp["origin"], float).reshape(-1),
+                                                                "GP predictive variance (unitless)", "Map variance"),
+                                  "Predictive variance of the Gaussian-process map (low = confident)."))
+    if "timings_s" in m:
+        rep.figures.append(Figure("Stage timings", plots.timings_png(m["timings_s"]), "Wall-clock time per pipeline stage."))
+    rep.metrics = _clean(m)
+    return rep
+
+
+def _html(rep: Report) -> str:
+    flat = flatten_metrics(rep.metrics)
+    rows = "\n".join(
+        f"<tr><td>{html.escape(k)}</td><td>{html.escape(v if isinstance(v, str) else f'{v:.6g}' if isinstance(v, float) else str(v))}</td></tr>"
+        for k, v in flat.items()
+    )
+    figs = "\n".join(
+        f'<figure><h2>{html.escape(f.title)}</h2><img alt="{html.escape(f.title)}" '
+        f'src="data:image/png;base64,{base64.b64encode(f.png).decode("ascii")}"/>'
+        f"<figcaption>{html.escape(f.caption)}</figcaption></figure>"
+        for f in rep.figures
+    )
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in rep.notes)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>gpslam report</title>
+<style>
+body {{ font-family: sans-serif; max-width: 1000px; margin: 2em auto; color: #222; }}
+table {{ border-collapse: collapse; font-size: 0.9em; }}
+td {{ border-bottom: 1px solid #ddd; padding: 2px 12px 2px 2px; font-family: monospace; }}
+figure {{ margin: 2em 0; }} img {{ max-width: 100%; }} figcaption {{ color: #555; }}
+</style></head><body>
+<h1>gpslam evaluation report</h1>
+<p>Result folder: <code>{html.escape(str(rep.metrics.get("result_dir", "")))}</code></p>
+{f"<h2>Notes</h2><ul>{notes}</ul>" if notes else ""}
+<h2>Metrics</h2>
+<table>
+{rows}
+</table>
+{figs}
+</body></html>
+"""
+
+
+def write_report(
+    result_dir: str | os.PathLike[str],
+    gt: str | os.PathLike[str] | None = None,
+    relations: str | os.PathLike[str] | None = None,
+    gt_map: str | os.PathLike[str] | None = None,
+    out_dir: str | os.PathLike[str] | None = None,
+) -> Report:
+    """Build the report and write ``report.html`` and ``metrics.json`` into *out_dir* (default *result_dir*)."""
+    rep = build_report(result_dir, gt, relations, gt_map)
+    od = Path(out_dir) if out_dir is not None else Path(result_dir)
+    with atomic_open(od / "metrics.json", "w", encoding="utf-8") as fh:
+        json.dump(rep.metrics, fh, indent=2)
+        fh.write("\n")
+    with atomic_open(od / "report.html", "w", encoding="utf-8") as fh:
+        fh.write(_html(rep))
+    return rep

@@ -1,0 +1,138 @@
+"""`slam eval report`: the HTML is self-contained, every image decodes, metrics.json holds the printed numbers."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from registration import geometry as geo
+from slam.trajectory_io import Trajectory, write_tum
+from evaluation.report import flatten_metrics, resample_classes
+
+RES = 0.1
+GT_ORIGIN = np.array([-2.0, -2.0, 0.0])
+
+
+def _world() -> np.ndarray:
+    """A 20 m × 14 m room with a 4 m × 3 m block inside: classes 100 walls, 0 free, −1 outside."""
+    h, w = 180, 240
+    cls = np.full((h, w), -1, np.int8)
+    cls[20:160, 20:220] = 100
+    cls[22:158, 22:218] = 0
+    cls[70:100, 100:140] = 100
+    return cls
+
+
+def _gt_traj(n_lap=150) -> Trajectory:
+    th = np.linspace(0, 2 * np.pi, n_lap, endpoint=False)
+    th = np.concatenate([th, th + 2 * np.pi])
+    x, y = 10 + 7 * np.cos(th), 5 + 5 * np.sin(th)
+    heading = np.arctan2(5 * np.cos(th), -7 * np.sin(th))
+    return Trajectory(1000.0 + 0.2 * np.arange(len(th)), geo.xytheta_to_matrix(x, y, heading), "gt")
+
+
+def make_result_dir(rd: Path, rng) -> tuple[Path, Path]:
+    """A synthetic 'slam run' folder (estimate in its own frame, drifted odometry, graph with loops, map, timings)."""
+    from mapping.mapserver import write_map_server
+    from slam.graph import PoseGraph, write_g2o
+
+    rd.mkdir(parents=True, exist_ok=True)
+    gt = _gt_traj()
+    write_tum(rd.parent / "gt.tum", gt)
+    write_map_server(rd.parent / "gt_map.yaml", _world(), RES, GT_ORIGIN)
+    slam_T_gt = geo.inverse(gt.poses[0])  # the estimate starts at the identity
+    est = slam_T_gt @ gt.poses @ geo.se2_exp(rng.normal(0, [0.03, 0.03, 0.005], (len(gt), 3)))
+    steps = geo.relative(gt.poses[:-1], gt.poses[1:]) @ geo.xytheta_to_matrix(0.01, 0.0, 0.004)
+    odo = [np.eye(4)]
+    for s in steps:
+        odo.append(odo[-1] @ s)
+    write_tum(rd / "trajectory.tum", Trajectory(gt.stamps, est))
+    write_tum(rd / "odometry.tum", Trajectory(gt.stamps, np.array(odo)))
+    keys = np.arange(0, len(gt), 5)
+    g = PoseGraph(2)
+    for k in keys:
+        g.add_node(int(k), est[k])
+    info = np.diag([100.0, 100.0, 1000.0])
+    for a, b in zip(keys[:-1], keys[1:]):
+        g.add_edge(int(a), int(b), geo.relative(est[a], est[b]), info, "odometry")
+    half = len(gt) // 2
+    for k in keys[keys < half][::3]:
+        C = geo.xytheta_to_matrix(0.5, 0, 0) if k % 9 == 0 else np.eye(4)  # every third closure is wrong
+        g.add_edge(int(k), int(k + half), geo.relative(gt.poses[k], gt.poses[k + half]) @ C, info, "loop")
+    write_g2o(g, rd / "graph.g2o")
+    # map in the SLAM frame: the ground truth seen through slam_T_gt, blurred into probabilities
+    h, w = 240, 180  # the room in the SLAM frame spans x ∈ [−5, 9] m, y ∈ [−3, 17] m
+    origin = np.array([-7.0, -5.0, 0.0])
+    cls = resample_classes(_world(), RES, GT_ORIGIN, (h, w), RES, origin, geo.inverse(slam_T_gt))
+    prob = np.where(cls == 100, 0.85, np.where(cls == 0, 0.15, 0.5)) + rng.normal(0, 0.25, (h, w))
+    prob = np.clip(prob, 0, 1)
+    var = np.where(cls == -1, 0.25, 0.02) + rng.uniform(0, 0.01, (h, w))
+    np.savez(rd / "map.npz", mean=2 * prob - 1, variance=var, probability=prob, resolution=RES, origin=origin)
+    (rd / "summary.json").write_text(json.dumps({"timings": {"read log": 1.3, "odometry": 12.5, "loop closure": 4.2,
+                                                              "optimisation": 0.8, "mapping": 20.1}}))
+    return rd.parent / "gt.tum", rd.parent / "gt_map.yaml"
+
+
+def test_report_images_decode_and_metrics_match_console(tmp_path, rng):
+    """Every inline PNG of report.html decodes with Pillow; each number printed on the console equals the one
+    in metrics.json; the map scored in the ground-truth frame has a high AUC (the alignment is applied)."""
+    PIL = pytest.importorskip("PIL.Image")
+    pytest.importorskip("slam.graph")
+    gt, gt_map = make_result_dir(tmp_path / "run", rng)
+    out = subprocess.run([str(Path(sys.executable).parent / "slam"), "eval", "report", str(tmp_path / "run"),
+                          "--gt", str(gt), "--gt-map", str(gt_map)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    page = (tmp_path / "run" / "report.html").read_text()
+    assert "src=\"http" not in page and "<script" not in page  # self-contained
+    imgs = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
+    assert len(imgs) >= 5
+    for b64 in imgs:
+        im = PIL.open(io.BytesIO(base64.b64decode(b64)))
+        im.load()
+        assert im.size[0] > 300 and im.size[1] > 200
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    flat = flatten_metrics(metrics)
+    printed = {}
+    for line in out.stdout.splitlines():
+        k, _, v = line.partition(": ")
+        if k in flat:
+            printed[k] = v
+    assert set(printed) == set(flat)
+    for k, v in printed.items():
+        if isinstance(flat[k], (int, float)) and not isinstance(flat[k], bool):
+            assert float(v) == pytest.approx(flat[k], rel=1e-9, abs=1e-12), k
+        else:
+            assert v == str(flat[k]), k
+    assert metrics["map"]["auc"] > 0.95
+    assert metrics["ape_trans_m"]["estimate"]["rmse"] < 0.1 < metrics["ape_trans_m"]["odometry"]["rmse"]
+    assert metrics["loops"]["n_loops"] == 10 and metrics["graph"]["loop_edges"] == 10
+    assert metrics["loops_vs_truth"]["precision"] == pytest.approx(6 / 10)
+    assert metrics["timings_s"]["mapping"] == 20.1
+
+
+def test_report_with_partial_outputs(tmp_path, rng):
+    """A folder with only trajectory.tum still renders, and the notes name what is missing."""
+    pytest.importorskip("PIL.Image")
+    from evaluation.report import write_report
+
+    rd = tmp_path / "run"
+    rd.mkdir()
+    write_tum(rd / "trajectory.tum", _gt_traj(30))
+    rep = write_report(rd)
+    assert (rd / "report.html").exists() and json.loads((rd / "metrics.json").read_text())["trajectories"]["estimate"]["poses"] == 60
+    assert any("map.npz" in n for n in rep.notes) and any("graph.g2o" in n for n in rep.notes)
+
+
+def test_resample_classes_identity_grid():
+    """Resampling a grid onto itself (same origin, resolution, no transform) returns it unchanged."""
+    cls = _world()
+    out = resample_classes(cls, RES, GT_ORIGIN, cls.shape, RES, GT_ORIGIN[:2])
+    assert np.array_equal(out, cls)
