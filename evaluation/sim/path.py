@@ -92,8 +92,8 @@ def sample_motion(polyline: NDArray[np.float64], heading0: float, max_speed: flo
     keep = lens > 1e-9
     seg, lens = seg[keep], lens[keep]
     starts = polyline[:-1][keep]
-    if len(seg) == 0:
-        poses = np.array([[polyline[0, 0], polyline[0, 1], heading0]])
+    if len(seg) == 0:  # standing still
+        poses = np.tile([polyline[0, 0], polyline[0, 1], heading0], (1 if n is None else n, 1))
         return poses, 0.0
     headings = np.arctan2(seg[:, 1], seg[:, 0])
     prev = np.concatenate([[heading0], headings[:-1]])
@@ -164,6 +164,30 @@ class _Roadmap:
 
     def node_at(self, xy: NDArray[np.float64]) -> int:
         return int(np.argmin(np.linalg.norm(self.xy - xy, axis=1)))
+
+
+def _out_and_back(out: NDArray[np.float64], heading0: float, v: float, w: float, dt: float,
+                  budget: float) -> NDArray[np.float64]:
+    """Drive along the polyline *out* as far as the time *budget* allows to come back the same way
+    (bisection on the turning distance), and return the out-and-back polyline."""
+    seglen = np.linalg.norm(np.diff(out, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seglen)])
+
+    def tip(reach: float) -> NDArray[np.float64]:
+        m = int(np.searchsorted(cum, reach, side="right"))
+        if m >= len(out):
+            pts = out
+        else:
+            f = (reach - cum[m - 1]) / max(seglen[m - 1], 1e-12)
+            pts = np.vstack([out[:m], out[m - 1] + f * (out[m] - out[m - 1])])
+        return np.vstack([pts, pts[-2::-1]])
+
+    lo, hi = 0.0, float(cum[-1])
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        _, t = sample_motion(tip(mid), heading0, v, w, dt, n=1)
+        lo, hi = (mid, hi) if t <= budget else (lo, mid)
+    return tip(lo)
 
 
 def plan_path(
@@ -263,17 +287,7 @@ def plan_path(
             else:
                 hi = mid - 1
         if loop is None:  # even the nearest waypoint is too far: go out and come back the same way
-            out = leg(0, order[1])
-            seglen = np.linalg.norm(np.diff(out, axis=0), axis=1)
-            reach = max(0.0, (budget - np.pi / max_turn_rate - 2 * np.pi / max_turn_rate) * max_speed / 2)
-            cum = np.concatenate([[0.0], np.cumsum(seglen)])
-            m = int(np.searchsorted(cum, reach, side="right"))
-            if m >= len(out):
-                tip = out
-            else:
-                f = (reach - cum[m - 1]) / max(seglen[m - 1], 1e-12)
-                tip = np.vstack([out[:m], out[m - 1] + f * (out[m] - out[m - 1])])
-            loop = np.vstack([tip, tip[-2::-1]]) if len(tip) > 1 else tip
+            loop = _out_and_back(leg(0, order[1]), heading0, max_speed, max_turn_rate, dt, budget)
     # drive the closed loop as many times as needed, then cut at n_poses
     laps = [loop]
     _, t_loop = sample_motion(loop, heading0, max_speed, max_turn_rate, dt, n=1)
