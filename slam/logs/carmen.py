@@ -84,8 +84,9 @@ def _short(tok: bytes, n: int = 24) -> str:
     return repr(s if len(s) <= n else s[:n] + "…")
 
 
-def _floats(tokens: list[bytes], path: str, lineno: int, what: str) -> np.ndarray:
-    """Vectorised float conversion of *tokens*; a non-numeric token is a LogFormatError."""
+def _floats(tokens: list[bytes], path: str, lineno: int, what: str, first_field: int) -> np.ndarray:
+    """Vectorised float conversion of *tokens* (fields ``first_field…`` of the line, 1-based);
+    a non-numeric token is a LogFormatError naming its field."""
     try:
         return np.array(tokens, dtype=np.float64)
     except _NUMERIC_ERRORS:
@@ -93,7 +94,7 @@ def _floats(tokens: list[bytes], path: str, lineno: int, what: str) -> np.ndarra
             try:
                 float(tok)
             except _NUMERIC_ERRORS:
-                raise _fail(path, lineno, f"non-numeric {what} field {_short(tok)} (token {i + 1})") from None
+                raise _fail(path, lineno, f"non-numeric {what} field {first_field + i}: {_short(tok)}") from None
         raise _fail(path, lineno, f"non-numeric {what} fields") from None
 
 
@@ -154,7 +155,7 @@ def _parse_numbers(tokens: list[bytes], path: str, lineno: int) -> _Laser:
         if nt != n + 11:
             raise _fail(path, lineno, f"{tag} with num_readings={n} needs {n + 11} fields "
                                       f"(tag, n, {n} ranges, 6 pose values, ipc_timestamp, host, logger_timestamp), got {nt}")
-        vals = _floats(tokens[2:n + 8], path, lineno, tag)
+        vals = _floats(tokens[2:n + 8], path, lineno, tag, 3)
         ranges, poses = vals[:n], vals[n:]
         laser, robot = poses[:3], poses[3:]
         angles = _beam_angles(-0.5 * math.pi, math.pi / (n - 1) if n > 1 else 0.0, n)
@@ -162,7 +163,7 @@ def _parse_numbers(tokens: list[bytes], path: str, lineno: int) -> _Laser:
     else:  # ROBOTLASER1 / ROBOTLASER2
         if nt < 10:
             raise _fail(path, lineno, f"{tag} needs at least 24 fields, got {nt}")
-        head = _floats(tokens[1:8], path, lineno, f"{tag} header")
+        head = _floats(tokens[1:8], path, lineno, f"{tag} header", 2)
         start, fov, res, max_range = (float(v) for v in head[1:5])
         n = _count(tokens[8], path, lineno, "num_readings")
         if nt < n + 10:
@@ -171,8 +172,8 @@ def _parse_numbers(tokens: list[bytes], path: str, lineno: int) -> _Laser:
         if nt != n + n_rem + 24:
             raise _fail(path, lineno, f"{tag} with {n} readings and {n_rem} remissions needs "
                                       f"{n + n_rem + 24} fields, got {nt}")
-        ranges = _floats(tokens[9:9 + n], path, lineno, tag)
-        poses = _floats(tokens[10 + n + n_rem:16 + n + n_rem], path, lineno, f"{tag} pose")
+        ranges = _floats(tokens[9:9 + n], path, lineno, tag, 10)
+        poses = _floats(tokens[10 + n + n_rem:16 + n + n_rem], path, lineno, f"{tag} pose", 11 + n + n_rem)
         laser, robot = poses[:3], poses[3:]
         if not (math.isfinite(start) and math.isfinite(res) and math.isfinite(fov)):
             raise _fail(path, lineno, f"{tag} start_angle/fov/angular_res must be finite")
@@ -432,7 +433,7 @@ def _check_odom(tokens: list[bytes], linenos: list[int], path: str) -> _LineErro
         return None
     for k, lineno in enumerate(linenos):
         try:
-            v = _floats(tokens[7 * k:7 * k + 7], path, lineno, "ODOM")
+            v = _floats(tokens[7 * k:7 * k + 7], path, lineno, "ODOM", 2)
             if not np.isfinite(v).all():
                 raise _fail(path, lineno, "ODOM values must be finite")
         except LogFormatError as exc:
