@@ -1,0 +1,81 @@
+"""``open_log`` / ``detect_format``: the right reader for CARMEN and KITTI inputs, by name and by content."""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+
+import numpy as np
+import pytest
+
+from registration.errors import LogFormatError, TopicNotFoundError
+from slam.logs import LogReader, detect_format, open_log
+from slam.logs.carmen import CarmenReader
+from slam.logs.kitti import KittiReader
+from tests.conftest import DATA
+from tests.test_logs_carmen import flaser
+
+LINE = (flaser([1.0, 2.0, 3.0]) + "\n").encode()
+
+
+@pytest.mark.parametrize("name, data", [
+    ("a.clf", LINE), ("a.log", LINE), ("a.carmen", LINE), ("a.txt", LINE),
+    ("a.clf.bz2", bz2.compress(LINE)), ("a.log.gz", gzip.compress(LINE)),
+    ("no_suffix_bz2", bz2.compress(LINE)), ("no_suffix_gz", gzip.compress(LINE)),
+])
+def test_carmen_by_name_or_magic(tmp_path, name, data):
+    """CARMEN logs are recognised by suffix, or by the bz2/gzip magic bytes whatever the name,
+    and every such file reads back the same one scan."""
+    p = tmp_path / name
+    p.write_bytes(data)
+    assert detect_format(p) == "carmen"
+    r = open_log(p)
+    assert isinstance(r, CarmenReader) and isinstance(r, LogReader)
+    (f,) = list(r)
+    np.testing.assert_array_equal(f.ranges, [1.0, 2.0, 3.0])
+
+
+def test_bundled_logs_are_carmen():
+    """The bundled data/*.clf.bz2 logs open as CARMEN with the FLASER topic."""
+    for name in ("intel.clf.bz2", "mit-csail.clf.bz2"):
+        r = open_log(DATA / name)
+        assert r.format == "carmen" and r.sensor_topic == "FLASER"
+
+
+def test_kitti_inputs(tmp_path):
+    """A sequence folder (velodyne/), the velodyne folder, a folder of .bin files and one .bin are KITTI."""
+    seq = tmp_path / "sequences" / "03"
+    (seq / "velodyne").mkdir(parents=True)
+    np.zeros((5, 4), "<f4").tofile(seq / "velodyne" / "000000.bin")
+    for p in (seq, seq / "velodyne", seq / "velodyne" / "000000.bin"):
+        assert detect_format(p) == "kitti"
+        r = open_log(p)
+        assert isinstance(r, KittiReader)
+        assert [f.points.shape for f in r] == [(5, 3)]
+
+
+def test_topic_is_passed_through(tmp_path):
+    """open_log(path, topic) hands the topic to the reader: an unknown one is refused at once."""
+    p = tmp_path / "a.clf"
+    p.write_bytes(LINE)
+    assert open_log(p, "FLASER").sensor_topic == "FLASER"
+    with pytest.raises(TopicNotFoundError):
+        open_log(p, "/points")
+    seq = tmp_path / "s"
+    (seq / "velodyne").mkdir(parents=True)
+    np.zeros((1, 4), "<f4").tofile(seq / "velodyne" / "000000.bin")
+    with pytest.raises(TopicNotFoundError):
+        open_log(seq, "FLASER")
+
+
+def test_unknown_and_missing(tmp_path):
+    """A missing path, an unknown suffix without magic bytes, and a folder that is no KITTI
+    sequence raise LogFormatError naming the path."""
+    odd = tmp_path / "notes.xyz"
+    odd.write_text("hello")
+    empty_dir = tmp_path / "empty"
+    empty_dir.mkdir()
+    for p in (tmp_path / "missing.clf", odd, empty_dir):
+        with pytest.raises(LogFormatError) as ei:
+            open_log(p)
+        assert str(p) in str(ei.value)
