@@ -111,7 +111,13 @@ def error_along_png(series: dict[str, tuple[Array, Array]], ylabel: str, title: 
         ax.set_xlabel("time since start [s]")
         ax.set_ylabel(ylabel)
         ax.set_title(title)
-        ax.set_ylim(bottom=0)
+        allv = np.concatenate([np.asarray(e, float) for _, e in series.values()])
+        pos = allv[allv > 0]
+        if points and pos.size and pos.max() > 100 * np.median(pos):  # errors spanning decades: log axis
+            ax.set_yscale("log")
+            ax.set_ylim(bottom=max(pos.min(), 1e-4) / 2)
+        else:
+            ax.set_ylim(bottom=0)
         ax.grid(True, alpha=0.3)
         ax.legend(loc="best")
         return _png(fig)

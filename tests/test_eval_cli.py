@@ -1,0 +1,78 @@
+"""`slam eval` command lines: error reporting, loop scoring and relations output."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from registration import geometry as geo
+from slam.trajectory_io import Trajectory, write_tum
+
+SLAM = str(Path(sys.executable).parent / "slam")
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([SLAM, "eval", *map(str, args)], capture_output=True, text=True)
+
+
+def test_malformed_trajectory_is_one_error_line_naming_file_and_line(tmp_path):
+    """A bad TUM line makes `slam eval ape` exit 2 with one 'error: FILE:line N: ...' line on stderr."""
+    (tmp_path / "bad.tum").write_text("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 1\n")
+    (tmp_path / "ok.tum").write_text("0 0 0 0 0 0 0 1\n")
+    r = _run("ape", tmp_path / "bad.tum", tmp_path / "ok.tum")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "bad.tum:line 2" in lines[0]
+
+
+def test_no_common_stamps_is_an_error(tmp_path):
+    """Trajectories without any stamp within --max-diff give a one-line error, not a traceback."""
+    write_tum(tmp_path / "a.tum", Trajectory(np.arange(5.0), np.tile(np.eye(4), (5, 1, 1))))
+    write_tum(tmp_path / "b.tum", Trajectory(np.arange(5.0) + 100, np.tile(np.eye(4), (5, 1, 1))))
+    r = _run("ape", tmp_path / "a.tum", tmp_path / "b.tum")
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr
+
+
+def test_relations_cli_reports_missing_and_json(tmp_path):
+    """`slam eval relations` prints n_missing for relations whose stamps the trajectory lacks and writes --json."""
+    poses = geo.xytheta_to_matrix(np.arange(10.0), np.zeros(10), np.zeros(10))
+    write_tum(tmp_path / "t.tum", Trajectory(np.arange(10.0), poses))
+    (tmp_path / "x.relations").write_text("0 1 1 0 0 0 0 0\n1 3 2 0 0 0 0 0\n5 50 1 0 0 0 0 0\n")
+    r = _run("relations", tmp_path / "t.tum", tmp_path / "x.relations", "--json", tmp_path / "o.json")
+    assert r.returncode == 0, r.stderr
+    printed = dict(line.split(": ", 1) for line in r.stdout.splitlines() if line.count(": ") == 1)
+    assert printed["n_missing"] == "1" and printed["n_used"] == "2" and float(printed["trans_mean"]) == 0.0
+    assert "not recognised" in r.stdout
+    assert json.loads((tmp_path / "o.json").read_text())["n_missing"] == 1
+
+
+def test_loops_cli_with_ground_truth(tmp_path):
+    """`slam eval loops GRAPH --gt` prints the self-scored precision and the ground-truth precision/recall."""
+    pytest.importorskip("slam.graph")
+    from slam.graph import PoseGraph, write_g2o
+
+    n = 60
+    th = np.linspace(0, 4 * np.pi, n, endpoint=False)
+    gt = geo.xytheta_to_matrix(5 * np.cos(th), 5 * np.sin(th), th + np.pi / 2)
+    g = PoseGraph(2)
+    for k in range(n):
+        g.add_node(k, gt[k])
+    info = np.eye(3) * 100
+    for k in range(n - 1):
+        g.add_edge(k, k + 1, geo.relative(gt[k], gt[k + 1]), info)
+    for k in range(0, 10):
+        C = np.eye(4) if k < 8 else geo.xytheta_to_matrix(0.0, 0.5, 0.0)
+        g.add_edge(k, k + 30, geo.relative(gt[k], gt[k + 30]) @ C, info)
+    write_g2o(g, tmp_path / "g.g2o")
+    write_tum(tmp_path / "gt.tum", Trajectory(np.arange(float(n)), gt))
+    r = _run("loops", tmp_path / "g.g2o", "--gt", tmp_path / "gt.tum", "--revisit-radius", "0.3", "--min-separation", "10")
+    assert r.returncode == 0, r.stderr
+    p = dict(line.split(": ", 1) for line in r.stdout.splitlines())
+    assert p["loops"] == "10" and float(p["precision"]) == pytest.approx(0.8)
+    assert float(p["gt_precision"]) == pytest.approx(0.8) and p["gt_revisit_nodes"] == "30"
+    assert float(p["gt_recall"]) == pytest.approx(8 / 30)
