@@ -44,6 +44,7 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TF_TYPES = (TF_MESSAGE, "tf/msg/tfMessage")  # ROS 1 bags may still carry the old tf type (same layout)
 SENSOR_TYPES = (LASER_SCAN, POINTCLOUD2)
 GROUND_TRUTH_NAMES = ("ground_truth", "groundtruth", "gt", "base_pose_ground_truth")
 BASE_FRAMES = ("base_link", "base_footprint")
@@ -662,7 +663,7 @@ class RosLogReader(LogReader):
         elif self.ground_truth_topic:
             choice.ground_truth = self._require(by_name, self.ground_truth_topic, (ODOMETRY, POSE_STAMPED), listing)
         for t in topics:
-            if t.msgtype == TF_MESSAGE:
+            if t.msgtype in TF_TYPES:
                 (choice.tf_static if t.name.rstrip("/").endswith("tf_static") else choice.tf).append(t.name)
         return choice
 
