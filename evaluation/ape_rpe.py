@@ -119,13 +119,21 @@ def rpe_pairs(traj: Trajectory, delta: float, unit: DeltaUnit | str = DeltaUnit.
     steps = np.linalg.norm(np.diff(traj.positions, axis=0), axis=1) if n > 1 else np.zeros(0)
     dist = np.concatenate([[0.0], np.cumsum(steps)])
     if all_pairs:
-        pairs = []
-        for i in range(n - 1):  # one vectorised search per start pose
-            d = dist[i + 1 :] - dist[i]
-            k = int(np.argmin(np.abs(d - delta)))
-            if abs(d[k] - delta) <= rel_tol * delta:
-                pairs.append((i, i + 1 + k))
-        return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+        # For each start i the later pose whose path distance is closest to delta (earliest on ties):
+        # the path length is non-decreasing, so the two neighbours of dist[i] + delta decide.
+        if n < 2:
+            return np.zeros((0, 2), np.int64)
+        i = np.arange(n - 1)
+        target = dist[:-1] + delta
+        hi = np.clip(np.searchsorted(dist, target, side="left"), i + 1, n - 1)
+        hi = np.maximum(np.searchsorted(dist, dist[hi], side="left"), i + 1)  # first pose with that distance
+        lo = np.maximum(hi - 1, i + 1)
+        lo = np.maximum(np.searchsorted(dist, dist[lo], side="left"), i + 1)
+        d_hi = np.abs(dist[hi] - dist[i] - delta)
+        d_lo = np.abs(dist[lo] - dist[i] - delta)
+        k = np.where(d_lo <= d_hi, lo, hi)
+        ok = np.abs(dist[k] - dist[i] - delta) <= rel_tol * delta
+        return np.column_stack([i[ok], k[ok]]).astype(np.int64)
     # Greedy: the path accumulated since the last chosen pose reaches delta. Sequential by
     # nature (each choice resets the counter), but one pass over scalar steps.
     ids = [0]

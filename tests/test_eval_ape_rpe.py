@@ -155,3 +155,20 @@ def test_statistics_closed_form():
     s = statistics(np.array([3.0, 4.0]))
     assert s["rmse"] == pytest.approx(np.sqrt(12.5)) and s["mean"] == 3.5 and s["median"] == 3.5
     assert s["std"] == 0.5 and s["sse"] == 25.0 and s["min"] == 3.0 and s["max"] == 4.0
+
+
+def test_metric_pairs_equal_evo_with_stops(rng):
+    """Travelled-distance pairs (consecutive and all-pairs) equal evo's pair filter on paths with standstills,
+    where ties between equal path distances must resolve to the earliest pose."""
+    from evo.core.filters import filter_pairs_by_path
+
+    for _ in range(20):
+        n = int(rng.integers(2, 200))
+        steps = rng.uniform(0, 1, (n, 3)) * (rng.uniform(0, 1, (n, 1)) > 0.3)
+        P = np.tile(np.eye(4), (n, 1, 1))
+        P[:, :3, 3] = np.cumsum(steps, 0)
+        t = Trajectory(np.arange(float(n)), P)
+        for delta in (0.5, 2.0, 7.0):
+            for all_pairs in (False, True):
+                theirs = [list(p) for p in filter_pairs_by_path(list(P), delta, 0.1 * delta, all_pairs=all_pairs)]
+                assert rpe_pairs(t, delta, "m", all_pairs=all_pairs).tolist() == theirs
