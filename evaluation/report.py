@@ -229,6 +229,11 @@ def build_report(
             m["relations"]["published"] = {
                 meth: {k: {"mean": v[0], "std": v[1]} for k, v in vals.items()} for meth, vals in PUBLISHED[ds].items()
             }
+            from .published import LOOP_PRECISION
+
+            n_c, prec = LOOP_PRECISION[ds]
+            m["relations"]["published"]["cartographer_loop_precision"] = prec
+            m["relations"]["published"]["cartographer_loop_constraints"] = n_c
 
     # --- graph and loops
     graph = None
@@ -362,6 +367,33 @@ def build_report(
     return rep
 
 
+def _relations_html(rel: dict[str, Any] | None) -> str:
+    """Side-by-side table: our relation metric per trajectory vs the published numbers (mean ± std)."""
+    if not rel:
+        return ""
+    from .published import METRIC_KEYS
+
+    units = {"trans": "m", "trans_sq": "m²", "rot": "deg", "rot_sq": "deg²"}
+    pub = rel.get("published") or {}
+    cols = [k for k in ("estimate", "odometry") if k in rel]
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+    head += "".join(f"<th>{n}</th>" for k, n in (("cartographer", "Cartographer"), ("graph_mapping", "Graph Mapping")) if k in pub)
+    body = []
+    for key, (label, m_attr, s_attr) in METRIC_KEYS.items():
+        cells = []
+        for c in cols:
+            mv, sv = rel[c].get(m_attr), rel[c].get(s_attr)
+            cells.append("<td>–</td>" if mv is None else f"<td>{mv:.4g} ± {sv:.4g}</td>")
+        for meth in ("cartographer", "graph_mapping"):
+            if meth in pub:
+                cells.append(f"<td>{pub[meth][key]['mean']:g} ± {pub[meth][key]['std']:g}</td>")
+        body.append(f"<tr><td>{html.escape(label)} [{units[key]}]</td>{''.join(cells)}</tr>")
+    missing = ", ".join(f"{c}: {rel[c].get('n_missing')} of {rel[c].get('n_used', 0) + rel[c].get('n_missing', 0)}" for c in cols)
+    return (f"<h2>Kümmerle relation metric ({html.escape(str(rel.get('dataset')))})</h2>"
+            f"<table><tr><th>metric</th>{head}</tr>{''.join(body)}</table>"
+            f"<p>Relations without a matching stamp (not used): {html.escape(missing)}.</p>")
+
+
 def _html(rep: Report) -> str:
     flat = flatten_metrics(rep.metrics)
     rows = "\n".join(
@@ -375,18 +407,20 @@ def _html(rep: Report) -> str:
         for f in rep.figures
     )
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in rep.notes)
+    rel_table = _relations_html(rep.metrics.get("relations"))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>gpslam report</title>
 <style>
 body {{ font-family: sans-serif; max-width: 1000px; margin: 2em auto; color: #222; }}
-table {{ border-collapse: collapse; font-size: 0.9em; }}
-td {{ border-bottom: 1px solid #ddd; padding: 2px 12px 2px 2px; font-family: monospace; }}
+table {{ border-collapse: collapse; font-size: 0.9em; margin-bottom: 1em; }}
+td, th {{ border-bottom: 1px solid #ddd; padding: 2px 12px 2px 2px; font-family: monospace; text-align: left; }}
 figure {{ margin: 2em 0; }} img {{ max-width: 100%; }} figcaption {{ color: #555; }}
 </style></head><body>
 <h1>gpslam evaluation report</h1>
 <p>Result folder: <code>{html.escape(str(rep.metrics.get("result_dir", "")))}</code></p>
 {f"<h2>Notes</h2><ul>{notes}</ul>" if notes else ""}
-<h2>Metrics</h2>
+{rel_table}
+<h2>All metrics</h2>
 <table>
 {rows}
 </table>

@@ -136,3 +136,28 @@ def test_resample_classes_identity_grid():
     cls = _world()
     out = resample_classes(cls, RES, GT_ORIGIN, cls.shape, RES, GT_ORIGIN[:2])
     assert np.array_equal(out, cls)
+
+
+def test_report_relations_table_with_published_numbers(tmp_path):
+    """With --relations named like a benchmark file, metrics hold our relation statistics (zero for the exact
+    trajectory) beside the published Intel numbers, and the HTML shows them side by side."""
+    pytest.importorskip("PIL.Image")
+    from evaluation.report import write_report
+
+    rd = tmp_path / "run"
+    rd.mkdir()
+    gt = _gt_traj(40)
+    write_tum(rd / "trajectory.tum", gt)
+    i = np.arange(0, 79)
+    D = geo.relative(gt.poses[i], gt.poses[i + 1])
+    rpy = geo.rotation_to_rpy(D[:, :3, :3])
+    rows = np.column_stack([gt.stamps[i], gt.stamps[i + 1], D[:, :3, 3], rpy])
+    (tmp_path / "intel.relations").write_text("".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows))
+    rep = write_report(rd, relations=tmp_path / "intel.relations")
+    rel = json.loads((rd / "metrics.json").read_text())["relations"]
+    assert rel["dataset"] == "intel" and rel["estimate"]["n_used"] == 79 and rel["estimate"]["n_missing"] == 0
+    assert rel["estimate"]["trans_mean"] < 1e-9
+    assert rel["published"]["cartographer"]["trans"] == {"mean": 0.0229, "std": 0.0239}
+    page = (rd / "report.html").read_text()
+    assert "Kümmerle relation metric" in page and "0.0229 ± 0.0239" in page and "0.031 ± 0.026" in page
+    assert any(f.title.startswith("Relation error") for f in rep.figures)
