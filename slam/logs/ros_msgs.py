@@ -334,11 +334,9 @@ def decode_pointcloud2(msg: Any) -> Array:
         if col.ndim > view.ndim:  # count > 1: the first element is the coordinate
             col = col[..., 0]
         out[:, j] = col.reshape(-1)
-    if n:
+    if n and not np.isfinite(out.reshape(-1)).all():  # flat check first: the common dense case is cheap
         fin = np.isfinite(out)
-        ok = fin[:, 0] & fin[:, 1] & fin[:, 2]  # cheaper than fin.all(axis=1)
-        if not ok.all():
-            out = out[ok]
+        out = out[fin[:, 0] & fin[:, 1] & fin[:, 2]]  # cheaper than fin.all(axis=1)
     return out
 
 
