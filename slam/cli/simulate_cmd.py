@@ -15,7 +15,7 @@ def simulate(
     sensor: str = typer.Option("fastgpom", "--sensor", help="Laser preset: fastgpom, sick_lms, hokuyo_utm30."),
     range_noise: float | None = typer.Option(None, "--range-noise", help="Gaussian range noise σ in m (default: the preset's)."),
     odom_noise: str | None = typer.Option(None, "--odom-noise",
-                                          help="Odometry noise α1,α2,α3,α4 (Probabilistic Robotics §5.4), e.g. 0.02,0.002,0.01,0.001."),
+                                          help="Odometry noise α1,α2,α3,α4 (Probabilistic Robotics §5.4), default 0.005,0.0005,0.01,0.001."),
     resolution: float | None = typer.Option(None, "--resolution", help="World cell size in m (procedural default 0.05; a yaml map is resampled)."),
 ) -> None:
     """Simulate a robot touring WORLD with a 2D laser and drifting wheel odometry; write an MCAP log."""
