@@ -76,3 +76,22 @@ def test_loops_cli_with_ground_truth(tmp_path):
     assert p["loops"] == "10" and float(p["precision"]) == pytest.approx(0.8)
     assert float(p["gt_precision"]) == pytest.approx(0.8) and p["gt_revisit_nodes"] == "30"
     assert float(p["gt_recall"]) == pytest.approx(8 / 30)
+
+
+def test_g2o_estimate_with_stamp_file_equals_tum(tmp_path, rng):
+    """A g2o-vertex estimate with --est-stamps ('id stamp') gives the same APE as the same poses in TUM."""
+    n = 30
+    P = geo.xytheta_to_matrix(np.cumsum(rng.uniform(0, 1, n)), rng.normal(0, 0.1, n), rng.normal(0, 0.1, n))
+    st = 50.0 + 0.5 * np.arange(n)
+    write_tum(tmp_path / "est.tum", Trajectory(st, P))
+    write_tum(tmp_path / "ref.tum", Trajectory(st, P @ geo.xytheta_to_matrix(0.1, 0.0, 0.0)))
+    (tmp_path / "est.g2o").write_text("".join(
+        f"VERTEX_SE2 {k} {x!r} {y!r} {t!r}\n" for k, (x, y, t) in enumerate(geo.matrix_to_xytheta(P).tolist())))
+    (tmp_path / "ids.txt").write_text("".join(f"{k} {float(s)!r}\n" for k, s in enumerate(st)))
+    a = _run("ape", tmp_path / "est.tum", tmp_path / "ref.tum")
+    b = _run("ape", tmp_path / "est.g2o", tmp_path / "ref.tum", "--est-stamps", tmp_path / "ids.txt")
+    assert a.returncode == b.returncode == 0, b.stderr
+    pa = dict(line.split(": ", 1) for line in a.stdout.splitlines())
+    pb = dict(line.split(": ", 1) for line in b.stdout.splitlines())
+    assert float(pa["rmse"]) == pytest.approx(0.1) and float(pb["rmse"]) == pytest.approx(float(pa["rmse"]), rel=1e-12)
+    assert pb["pairs"] == str(n)

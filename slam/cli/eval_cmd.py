@@ -65,6 +65,9 @@ def _save_json(path: Path | None, obj: Any) -> None:
 
 
 _JSON = typer.Option(None, "--json", help="Also write the full result as JSON to this path.")
+_STAMPS_HELP = "Stamps for a KITTI or g2o file: one per pose, or 'id stamp' lines."
+_EST_STAMPS = typer.Option(None, "--est-stamps", help=_STAMPS_HELP)
+_REF_STAMPS = typer.Option(None, "--ref-stamps", help=_STAMPS_HELP)
 
 
 def ape_cmd(
@@ -75,13 +78,15 @@ def ape_cmd(
     max_diff: float = typer.Option(0.01, "--max-diff", help="Largest stamp difference for association [s]."),
     est_format: _Fmt = typer.Option(_Fmt.auto, "--est-format"),
     ref_format: _Fmt = typer.Option(_Fmt.auto, "--ref-format"),
+    est_stamps: Path | None = _EST_STAMPS,
+    ref_stamps: Path | None = _REF_STAMPS,
     json_out: Path | None = _JSON,
 ) -> None:
     """Absolute pose error (evo's definition): prints rmse, mean, median, max, std, min, sse."""
     from evaluation.ape_rpe import evaluate_ape
     from slam.trajectory_io import read_trajectory
 
-    res = evaluate_ape(read_trajectory(est, est_format.value), read_trajectory(ref, ref_format.value),
+    res = evaluate_ape(read_trajectory(est, est_format.value, est_stamps), read_trajectory(ref, ref_format.value, ref_stamps),
                        align=align.value, relation=relation.value, max_diff=max_diff)
     typer.echo(f"metric: APE {res.relation} [{res.unit or 'unitless'}]")
     _echo_pairs({k: res.stats[k] for k in ("rmse", "mean", "median", "max", "std", "min", "sse")})
@@ -101,6 +106,8 @@ def rpe_cmd(
     max_diff: float = typer.Option(0.01, "--max-diff", help="Largest stamp difference for association [s]."),
     est_format: _Fmt = typer.Option(_Fmt.auto, "--est-format"),
     ref_format: _Fmt = typer.Option(_Fmt.auto, "--ref-format"),
+    est_stamps: Path | None = _EST_STAMPS,
+    ref_stamps: Path | None = _REF_STAMPS,
     json_out: Path | None = _JSON,
 ) -> None:
     """Relative pose error (evo's definition): prints rmse, mean, median, max, std, min, sse."""
@@ -108,7 +115,7 @@ def rpe_cmd(
     from slam.trajectory_io import read_trajectory
 
     d: float = int(delta) if delta_unit is _DeltaUnit.frames and float(delta).is_integer() else delta
-    res = evaluate_rpe(read_trajectory(est, est_format.value), read_trajectory(ref, ref_format.value), delta=d,
+    res = evaluate_rpe(read_trajectory(est, est_format.value, est_stamps), read_trajectory(ref, ref_format.value, ref_stamps), delta=d,
                        delta_unit=delta_unit.value, relation=relation.value, align=align.value, all_pairs=all_pairs,
                        max_diff=max_diff, pairs_from_reference=pairs_from_reference)
     typer.echo(f"metric: RPE {res.relation} [{res.unit or 'unitless'}] delta {fmt_num(d)} {delta_unit.value}")
@@ -142,6 +149,7 @@ def relations_cmd(
     relations: Path = typer.Argument(..., help="Relations file 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", help="Stamp matching tolerance [s]."),
     traj_format: _Fmt = typer.Option(_Fmt.auto, "--format"),
+    stamps: Path | None = typer.Option(None, "--stamps", help=_STAMPS_HELP),
     dataset: str | None = typer.Option(None, "--dataset", help="Dataset key for published numbers (default: from the file name)."),
     json_out: Path | None = _JSON,
 ) -> None:
@@ -150,7 +158,7 @@ def relations_cmd(
     from evaluation.relations import evaluate_relations, read_relations
     from slam.trajectory_io import read_trajectory
 
-    res = evaluate_relations(read_trajectory(traj, traj_format.value), read_relations(relations), stamp_tol)
+    res = evaluate_relations(read_trajectory(traj, traj_format.value, stamps), read_relations(relations), stamp_tol)
     ds = dataset or recognise_dataset(relations) or recognise_dataset(traj)
     out = res.to_dict()
     _echo_pairs(out)
