@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import geometry as geo
-from registration.errors import GraphFormatError
+from registration.errors import GeometryError, GraphFormatError
 
 from .trajectory import umeyama
 
@@ -64,7 +64,7 @@ def crosscheck(graph, poses_a: Array, poses_b: Array, names: tuple[str, str] = (
     B = np.asarray(poses_b, dtype=np.float64)
     n = graph.num_nodes
     if A.shape != (n, 4, 4) or B.shape != (n, 4, 4):
-        raise GraphFormatError("solution", None, f"solutions must have one pose per graph node ({n}), got {A.shape} and {B.shape}")
+        raise GeometryError(f"solutions must have one pose per graph node ({n}), got {A.shape} and {B.shape}")
     d = graph.dim
     R, t, _ = umeyama(B[:, :d, 3], A[:, :d, 3])
     G = np.eye(4)

@@ -217,6 +217,10 @@ def loops_cmd(
     from slam.graph import read_graph
 
     graph = read_graph(graph_path)
+    if poses is None and not graph.has_initial_guess:
+        from registration.errors import GraphFormatError
+
+        raise GraphFormatError(graph_path, None, "has no VERTEX pose for every node; give the optimised poses with --poses")
     P = load_solution(poses, graph) if poses is not None else graph.poses
     loops = loop_edges_from_graph(graph)
     s = score_loops(loops, P, trans_tol, rot_tol)
