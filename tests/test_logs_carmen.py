@@ -243,6 +243,35 @@ def test_long_lines_across_blocks(tmp_path, monkeypatch):
             np.testing.assert_array_equal(a.ranges, b.ranges)
 
 
+@pytest.mark.parametrize("block", [3000, 1 << 20])
+def test_block_path_equals_line_parser(tmp_path, monkeypatch, block):
+    """The block-vectorised FLASER path gives exactly the frames of the one-line parser, also for
+    zero readings (dropped beams) and for blocks that mix beam counts (small blocks: uniform
+    ones and mixed ones; one big block: mixed)."""
+    import slam.logs.carmen as carmen
+
+    monkeypatch.setattr(carmen, "_BLOCK", block)
+    rng = np.random.default_rng(8)
+    lines = []
+    for k in range(60):
+        n = 181 if k < 30 or k % 7 else 90  # uniform blocks first, then mixed
+        r = np.round(rng.uniform(0.05, 30.0, n), 2)
+        r[rng.random(n) < 0.05] = 81.91
+        if k % 5 == 0:
+            r[rng.integers(0, n, 3)] = 0.0
+        pose = tuple(rng.normal(0, 5, 3))
+        lines.append(flaser(r, pose, pose, stamp=50.0 + k))
+    p = write_log(tmp_path / "mix.clf", lines)
+    reader = CarmenReader(p)
+    frames = list(reader.frames())
+    assert len(frames) == 60
+    for k, f in enumerate(frames):
+        ref = parse_laser_line(lines[k], path=str(p), lineno=k + 1, index=k, max_range=reader.flaser_max_range())
+        assert (f.stamp, f.index, f.source, f.max_range) == (ref.stamp, ref.index, ref.source, ref.max_range)
+        for a in ("angles", "ranges", "no_return", "points", "odom", "base_T_sensor"):
+            np.testing.assert_array_equal(getattr(f, a), getattr(ref, a), err_msg=a)
+
+
 def test_topic_choice(tmp_path):
     """Default topic is the front laser; RLASER/rear selects the rear one; ROBOTLASER1 when alone."""
     lines = [flaser([1.0, 2.0], stamp=1.0), flaser([3.0, 4.0, 5.0], stamp=1.5, tag="RLASER"), flaser([1.0, 2.0], stamp=2.0)]

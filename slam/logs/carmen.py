@@ -201,11 +201,12 @@ def _parse_numbers(tokens: list[bytes], path: str, lineno: int) -> _Laser:
 def _mounting(tags: list[str], odom: np.ndarray, laser: np.ndarray) -> np.ndarray:
     """``base_T_sensor = odom_T_base⁻¹ · odom_T_laser`` for a stack of lines ``(N, 4, 4)``."""
     b_T_s = geo.relative(odom, laser)
-    for i, tag in enumerate(tags):
-        if tag in _REAR_TAGS and abs(math.atan2(b_T_s[i, 1, 0], b_T_s[i, 0, 0])) < 0.5 * math.pi:
-            # The rear laser faces backwards; logs that write the rear laser pose with the
-            # robot's heading leave the half turn implicit.
-            b_T_s[i] = b_T_s[i] @ geo.xytheta_to_matrix(0.0, 0.0, math.pi)
+    rear = np.fromiter((t in _REAR_TAGS for t in tags), bool, len(tags))
+    if rear.any():
+        # The rear laser faces backwards; logs that write the rear laser pose with the robot's
+        # heading leave the half turn implicit.
+        fix = rear & (np.abs(np.arctan2(b_T_s[:, 1, 0], b_T_s[:, 0, 0])) < 0.5 * math.pi)
+        b_T_s[fix] = b_T_s[fix] @ geo.xytheta_to_matrix(0.0, 0.0, math.pi)
     return b_T_s
 
 
@@ -251,6 +252,86 @@ def _to_frames(
             odom=odom[k], base_T_sensor=b_T_s[k], max_range=float(max_range), source=f"{name}:line {linenos[k]}",
         ))
     return out
+
+
+def _flaser_block(
+    rows: list[list[bytes]], linenos: list[int], *, path: str, name: str, first_index: int, max_range: float,
+) -> tuple[list[Frame], "_LineError | None"]:
+    """Frames of a block's FLASER/RLASER lines (the hot path), and the error of the first bad line.
+
+    When every line of the block has the same beam count, all numbers of the block are converted
+    by one ``np.array`` call and checked, projected and masked as ``(m, n)`` arrays; otherwise,
+    or when something is wrong, the lines go through :func:`_parse_numbers` one by one, which
+    names the exact problem. Frames come only from the lines before the first bad one.
+    """
+    m = len(rows)
+    if m == 0:
+        return [], None
+    nt = len(rows[0])
+    n = nt - 11
+    vals = None
+    if n >= 1 and all(len(r) == nt for r in rows):
+        nb = str(n).encode()
+        if all(r[1] == nb for r in rows):
+            flat: list[bytes] = []
+            for r in rows:
+                flat += r[2:n + 8]
+                flat.append(r[-3])
+            try:
+                vals = np.array(flat, dtype=np.float64).reshape(m, n + 7)
+            except _NUMERIC_ERRORS:
+                vals = None
+    if vals is None:  # irregular or malformed block: line by line
+        lasers: list[_Laser] = []
+        for r, ln in zip(rows, linenos):
+            try:
+                lasers.append(_parse_numbers(r, path, ln))
+            except LogFormatError as exc:
+                good = _to_frames(lasers, linenos[:len(lasers)], first_index=first_index, name=name,
+                                  flaser_max_range=max_range, override=None)
+                return good, _LineError(exc, ln)
+        return _to_frames(lasers, linenos, first_index=first_index, name=name, flaser_max_range=max_range,
+                          override=None), None
+    R = vals[:, :n]
+    rmin = R.min(axis=1)
+    ok = (rmin >= 0.0) & np.isfinite(vals[:, n:]).all(axis=1)  # rmin ≥ 0 is False for NaN
+    error = None
+    if not ok.all():
+        bad = int(np.argmin(ok))
+        try:
+            _parse_numbers(rows[bad], path, linenos[bad])
+        except LogFormatError as exc:
+            error = _LineError(exc, linenos[bad])
+        else:  # pragma: no cover - the two checks agree
+            raise AssertionError(f"{path}:line {linenos[bad]}: block check and line parser disagree")
+        m = bad
+        R, vals, rmin = R[:m], vals[:m], rmin[:m]
+    if m == 0:
+        return [], error
+    tag = rows[0][0].decode("ascii")
+    P = vals[:, n:n + 6]
+    odom = geo.xytheta_to_matrix(P[:, 3:6])
+    b_T_s = _mounting([tag] * m, odom, geo.xytheta_to_matrix(P[:, 0:3]))
+    angles, cos, sin = _beam_angles(-0.5 * math.pi, math.pi / (n - 1) if n > 1 else 0.0, n)
+    NR = R >= max_range
+    XY = np.stack((R * cos, R * sin), axis=-1)
+    Rout = np.where(NR, np.inf, R)
+    stamps = vals[:, n + 6]
+    frames: list[Frame] = []
+    for k in range(m):
+        if rmin[k] <= 0.0:  # zero readings to drop: the general path
+            las = _Laser(tag, float(stamps[k]), (angles, cos, sin), R[k], P[k, :3], P[k, 3:], None,
+                         float(rmin[k]), float(R[k].max()))
+            frames += _to_frames([las], [linenos[k]], first_index=first_index + k, name=name,
+                                 flaser_max_range=max_range, override=None)
+            continue
+        nr = NR[k]
+        frames.append(Frame(
+            stamp=float(stamps[k]), points=XY[k][~nr], index=first_index + k, angles=angles, ranges=Rout[k],
+            no_return=nr, odom=odom[k], base_T_sensor=b_T_s[k], max_range=float(max_range),
+            source=f"{name}:line {linenos[k]}",
+        ))
+    return frames, error
 
 
 def parse_laser_line(
@@ -441,12 +522,6 @@ def _check_odom(tokens: list[bytes], linenos: list[int], path: str) -> _LineErro
     return None
 
 
-def _before(lasers: list[_Laser], linenos: list[int], lineno: int) -> tuple[list[_Laser], list[int]]:
-    """The scans of a block that come before line *lineno*."""
-    keep = [i for i, ln in enumerate(linenos) if ln < lineno]
-    return [lasers[i] for i in keep], [linenos[i] for i in keep]
-
-
 class CarmenReader(LogReader):
     """Streaming reader of one laser stream of a CARMEN log.
 
@@ -534,11 +609,15 @@ class CarmenReader(LogReader):
         path = str(self.path)
         name = self.path.name
         fl_max = self.flaser_max_range()
+        # FLASER/RLASER take the block-vectorised path; ROBOTLASER* lines are parsed one by one
+        # (a user max range applies to both kinds, see flaser_max_range()).
+        fast = topic in ("FLASER", "RLASER")
         index = 0
         last = 0
         n_topic = 0
         for first, lines in _line_blocks(self.path):
             lasers: list[_Laser] = []
+            rows: list[list[bytes]] = []
             linenos: list[int] = []
             odom_tokens: list[bytes] = []
             odom_lines: list[int] = []
@@ -551,7 +630,10 @@ class CarmenReader(LogReader):
                         continue
                     t0 = tokens[0]
                     if t0 == want:
-                        lasers.append(_parse_numbers(tokens, path, lineno))
+                        if fast:
+                            rows.append(tokens)
+                        else:
+                            lasers.append(_parse_numbers(tokens, path, lineno))
                         linenos.append(lineno)
                         continue
                     if t0[:1] == b"#":
@@ -571,12 +653,20 @@ class CarmenReader(LogReader):
                 bad_odom = _check_odom(odom_tokens, odom_lines, path)
                 if bad_odom is not None and (error is None or bad_odom.lineno < error.lineno):
                     error = bad_odom
-                    lasers, linenos = _before(lasers, linenos, bad_odom.lineno)
-            n_topic += len(lasers)
-            if odom_fields is not None and lasers and not odom_fields[0]:
-                odom_fields[0] = any((las.robot_pose != 0.0).any() for las in lasers)
-            frames = _to_frames(lasers, linenos, first_index=index, name=name, flaser_max_range=fl_max,
-                                override=self._user_max_range)
+            if error is not None:  # only the scans before the first bad line
+                keep = sum(1 for ln in linenos if ln < error.lineno)
+                lasers, rows, linenos = lasers[:keep], rows[:keep], linenos[:keep]
+            if fast:
+                frames, laser_error = _flaser_block(rows, linenos, path=path, name=name, first_index=index,
+                                                    max_range=fl_max)
+                if laser_error is not None:
+                    error = laser_error
+            else:
+                frames = _to_frames(lasers, linenos, first_index=index, name=name, flaser_max_range=fl_max,
+                                    override=self._user_max_range)
+            n_topic += len(frames)
+            if odom_fields is not None and frames and not odom_fields[0]:
+                odom_fields[0] = any((f.odom[:2, 3] != 0.0).any() or f.odom[1, 0] != 0.0 for f in frames)
             index += len(frames)
             yield from frames
             if error is not None:
