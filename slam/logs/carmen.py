@@ -27,9 +27,12 @@ carries no information). NaN or negative ranges, wrong field counts, non-numeric
 scans and corrupt or truncated compressed streams raise :class:`LogFormatError` naming the file
 and line.
 
-Reading is streaming with constant memory: the (decompressed) file is read in blocks of about
-1 MiB, split into lines in bulk, and every laser line is parsed by one vectorised
-``np.array(tokens, float)`` call (no per-beam Python loop).
+Reading is streaming with constant memory: the file is decompressed in blocks of about 1 MiB
+by a background thread (bz2/zlib release the GIL, so decompression overlaps parsing), each
+block is split into lines in bulk, and all FLASER/RLASER numbers of a block are converted and
+checked as one ``(scans, beams)`` array (one ``np.array(tokens, float)`` call per block; no
+per-beam Python loop). ROBOTLASER lines, and blocks with irregular or bad lines, are parsed line
+by line, which also yields the precise error message.
 """
 
 from __future__ import annotations
