@@ -245,9 +245,15 @@ def _rooms(resolution: float, rng: np.random.Generator) -> World:
                 doors[k - 1].append((a, dy))
         for k in range(len(cuts) - 1):
             _furniture(cv, rng, cuts[k], ry0, cuts[k + 1], ry1, doors[k], int(rng.integers(0, 3)))
-    # a few pillars in the hallway keep scan matching along it well-posed
-    for x in rng.uniform(2.0, width - 2.0, size=3):
-        cv.rect(x - 0.1, hy0, x + 0.1, hy0 + 0.25)
+    # a few pillars on the hallway wall (never in a doorway) keep scan matching along it well-posed
+    row = int(np.searchsorted(cv.ys, hy0))
+    placed = 0
+    for x in rng.uniform(2.0, width - 2.0, size=30):
+        if placed == 3:
+            break
+        if cv.occupied[row, cv._span(cv.xs, x - 0.7, x + 0.7)].all():
+            cv.rect(x - 0.1, hy0, x + 0.1, hy0 + 0.25)
+            placed += 1
     return cv.world("rooms")
 
 
