@@ -1,0 +1,82 @@
+"""Costs of a pose-graph solution: the SE-Sync objective and GTSAM's χ² (``NonlinearFactorGraph.error``).
+
+SE-Sync objective (Rosen et al., "SE-Sync", IJRR 2019, eq. 12; no ½ factor), summed over edges (i, j):
+``f = Σ κ_ij ‖R_j − R_i R̃_ij‖_F² + τ_ij ‖t_j − t_i − R_i t̃_ij‖²``, with the isotropic weights κ, τ
+obtained from the g2o information matrix exactly as SE-Sync's ``SESync_utils.cpp`` does
+(``../shared/data/PUBLISHED_RESULTS.md`` §2): 2D ``τ = 2 / tr(I_tt⁻¹)``, ``κ = I_θθ``; 3D
+``τ = 3 / tr(I_tt⁻¹)``, ``κ = 3 / (2 tr(I_rr⁻¹))``. Priors count with R_i = I, t_i = 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .posegraph import EdgeArrays, PoseGraph
+
+Array = NDArray[np.float64]
+
+__all__ = ["chordal_weights", "sesync_objective", "chordal_residuals", "gtsam_error"]
+
+
+def chordal_weights(graph: PoseGraph) -> tuple[Array, Array]:
+    """Per-edge (κ, τ) ``(M,)`` from the information matrices (translation block first)."""
+    info = graph.edge_arrays().information
+    d = graph.dim
+    It = info[:, :d, :d]
+    Ir = info[:, d:, d:]
+    tau = d / np.trace(np.linalg.inv(It), axis1=1, axis2=2)
+    if d == 2:
+        kappa = Ir[:, 0, 0].copy()
+    else:
+        kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(Ir), axis1=1, axis2=2))
+    return kappa, tau
+
+
+def _endpoints(poses: Array, ii: NDArray[np.int64], dim: int) -> tuple[Array, Array]:
+    """Rotations and translations of the edges' first node; identity/zero for priors (ii = −1)."""
+    R = poses[:, :dim, :dim]
+    t = poses[:, :dim, 3]
+    Ri = R[ii]
+    ti = t[ii]
+    prior = ii < 0
+    if prior.any():
+        Ri[prior] = np.eye(dim)
+        ti[prior] = 0.0
+    return Ri, ti
+
+
+def chordal_residuals(poses: Array, edges: EdgeArrays, dim: int) -> tuple[Array, Array]:
+    """Per-edge chordal errors ``E_R = R_iᵀR_j − R̃`` ``(M, d, d)`` and ``e_t = R_iᵀ(t_j − t_i) − t̃`` ``(M, d)``.
+
+    ‖E_R‖_F = ‖R_j − R_i R̃‖_F and ‖e_t‖ = ‖t_j − t_i − R_i t̃‖ (rotation invariance), so the weighted sum
+    of their squares is the SE-Sync objective.
+    """
+    Ri, ti = _endpoints(poses, edges.ii, dim)
+    Rj = poses[edges.jj, :dim, :dim]
+    tj = poses[edges.jj, :dim, 3]
+    Z = edges.measurements
+    RiT = np.swapaxes(Ri, 1, 2)
+    ER = RiT @ Rj - Z[:, :dim, :dim]
+    et = np.einsum("mab,mb->ma", RiT, tj - ti) - Z[:, :dim, 3]
+    return ER, et
+
+
+def sesync_objective(graph: PoseGraph, poses: ArrayLike | None = None) -> float:
+    """SE-Sync objective of *poses* ``(N, 4, 4)`` (default: the graph's node poses) on *graph*."""
+    P = graph.poses if poses is None else np.asarray(poses, dtype=float)
+    if not np.all(np.isfinite(P)):
+        raise ValueError("every node needs a pose to evaluate the objective")
+    kappa, tau = chordal_weights(graph)
+    ER, et = chordal_residuals(P, graph.edge_arrays(), graph.dim)
+    return float(np.sum(kappa * np.einsum("mab,mab->m", ER, ER)) + np.sum(tau * np.einsum("ma,ma->m", et, et)))
+
+
+def gtsam_error(graph: PoseGraph, poses: ArrayLike | None = None, *, robust: bool = True) -> float:
+    """GTSAM's ``NonlinearFactorGraph.error`` = ½ Σ eᵀΩe on the log-map errors (robust losses when the edges
+    carry kernels and *robust* is true), without any gauge prior."""
+    from slam.backends.gtsam_backend import build_factor_graph, to_values
+
+    P = graph.poses if poses is None else np.asarray(poses, dtype=float)
+    fg = build_factor_graph(graph, use_kernels=robust, anchor=False)
+    return float(fg.error(to_values(P, graph.dim)))
