@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -229,6 +227,25 @@ def test_odometry_interpolation_is_exact_on_constant_twist(tmp_path, rng):
     for f in frames:
         np.testing.assert_allclose(f.odom, T0 @ geo.se3_exp((f.stamp - t0) * xi), atol=1e-9)
         assert abs(f.odom[2, 3]) < 1e-12
+
+
+def test_memory_does_not_grow_with_log_length(tmp_path):
+    """Streaming: the peak memory allocated while iterating the frames of a 1500-scan log (with
+    odometry and TF) is no larger than for a 150-scan log, up to a small slack."""
+    import tracemalloc
+
+    small = write_basic_log(tmp_path / "small.mcap", n=150, chunk_size=1 << 16)
+    big = write_basic_log(tmp_path / "big.mcap", n=1500, chunk_size=1 << 16)
+    peaks = []
+    for p in (small, big):
+        r = McapReader(p)
+        r.topics()
+        tracemalloc.start()
+        n = sum(1 for _ in r.frames())
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+        assert n in (150, 1500)
+    assert peaks[1] < 1.25 * peaks[0] + 256 * 1024, peaks
 
 
 def test_pose_track_holds_ends_and_refuses_far_queries():
