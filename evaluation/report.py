@@ -79,7 +79,8 @@ def _clean(obj: Any) -> Any:
 
 
 def _timings(summary: dict[str, Any]) -> dict[str, float]:
-    """Stage → seconds from ``summary.json`` (first of the usual keys that maps names to numbers)."""
+    """Stage → seconds from ``summary.json``: the first of the usual keys that maps names to numbers, else
+    the top-level ``<stage>_time_s`` entries."""
     for key in ("timings", "stage_timings", "timings_s", "stage_times", "timing"):
         val = summary.get(key)
         if isinstance(val, dict):
@@ -94,7 +95,8 @@ def _timings(summary: dict[str, Any]) -> dict[str, float]:
                             break
             if out:
                 return out
-    return {}
+    return {k[: -len("_time_s")]: float(v) for k, v in summary.items()
+            if k.endswith("_time_s") and isinstance(v, (int, float)) and not isinstance(v, bool)}
 
 
 def resample_classes(gt_classes: NDArray[np.int8], gt_resolution: float, gt_origin: Array, shape: tuple[int, int],
@@ -167,7 +169,7 @@ def build_report(
     max_diff: float = 0.01,
 ) -> Report:
     """Compute the metrics and figures for *result_dir* (see the module docstring)."""
-    from slam.trajectory_io import read_tum
+    from slam.trajectory_io import read_trajectory, read_tum
 
     from . import plots
     from .ape_rpe import evaluate_ape, evaluate_rpe
@@ -192,7 +194,7 @@ def build_report(
             rep.notes.append(f"{name} not found")
 
     # --- ground truth: APE / RPE
-    gt_traj = read_tum(gt) if gt is not None else None
+    gt_traj = read_trajectory(gt) if gt is not None else None  # TUM, or the ground truth of a simulated log
     aligned_paths: dict[str, Array] = {}
     gt_T_map: Array | None = None
     ape_series: dict[str, tuple[Array, Array]] = {}

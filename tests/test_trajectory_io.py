@@ -92,3 +92,19 @@ def test_failed_write_leaves_no_file(tmp_path, rng, monkeypatch):
     with pytest.raises(RuntimeError):
         write_tum(tmp_path / "x.tum", _random_traj(rng))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_trajectory_from_log_odometry_and_missing_ground_truth():
+    """A CARMEN log yields its per-scan wheel odometry as a trajectory (one pose per scan, increasing stamps);
+    asking it for ground truth it does not have is a LogFormatError naming the file."""
+    pytest.importorskip("slam.logs.carmen")
+    from tests.conftest import DATA, shared_path
+
+    log = DATA / "mit-csail.clf.bz2"
+    if not log.exists():
+        log = shared_path("slam2d_kummerle_benchmark", "mit-csail.clf.bz2")
+    t = read_trajectory(log, "log_odom")
+    assert len(t) == 1988 and np.all(np.diff(t.stamps) > 0) and t.is_planar()
+    with pytest.raises(LogFormatError) as ei:
+        read_trajectory(log)  # auto: a log suffix means its ground truth
+    assert "mit-csail" in str(ei.value) and "ground_truth" in str(ei.value)

@@ -38,6 +38,8 @@ class _Fmt(str, Enum):
     tum = "tum"
     kitti = "kitti"
     g2o = "g2o"
+    log_gt = "log_gt"
+    log_odom = "log_odom"
 
 
 def fmt_num(v: Any) -> str:
