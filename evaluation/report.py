@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from registration import geometry as geo
 from registration.atomic import atomic_open
-from registration.errors import GpslamError, MapFormatError
+from registration.errors import GpslamError, InputFileError, MapFormatError
 
 Array = NDArray[np.float64]
 
@@ -176,7 +176,7 @@ def build_report(
 
     rd = Path(result_dir)
     if not rd.is_dir():
-        raise MapFormatError(rd, None, "result folder does not exist")
+        raise InputFileError(rd, None, "result folder does not exist")
     rep = Report()
     m = rep.metrics
     m["result_dir"] = str(rd)
@@ -201,12 +201,17 @@ def build_report(
     if gt_traj is not None:
         aligned_paths["ground truth"] = gt_traj.positions
         for label, t in trajs.items():
-            a = evaluate_ape(t, gt_traj, align="se3", max_diff=max_diff)
-            r = evaluate_rpe(t, gt_traj, delta=1, delta_unit="frames", max_diff=max_diff)
+            try:
+                a = evaluate_ape(t, gt_traj, align="se3", max_diff=max_diff)
+                r = evaluate_rpe(t, gt_traj, delta=1, delta_unit="frames", max_diff=max_diff)
+            except GpslamError as exc:  # e.g. no common stamps: report it, keep the rest of the report
+                rep.notes.append(f"{label}: APE/RPE not computed: {exc}")
+                continue
             m.setdefault("ape_trans_m", {})[label] = {k: a.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": a.n_matched}
             m.setdefault("rpe_trans_m", {})[label] = {k: r.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": len(r.errors)}
             ape_series[label] = (a.stamps, a.errors)
-            assert a.est_aligned is not None and a.alignment is not None
+            if a.est_aligned is None or a.alignment is None:
+                continue
             aligned_paths[label] = a.est_aligned.positions
             if label == "estimate":
                 gt_T_map = a.alignment.transform
