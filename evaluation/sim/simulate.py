@@ -137,7 +137,8 @@ def simulate(
         max_speed (m/s), max_turn_rate (rad/s), robot_radius (m): see :func:`plan_path`.
 
     The path, the range noise and the odometry noise use independent random streams spawned
-    from *seed*, so changing a noise level does not change the path.
+    from *seed*, so changing a noise level does not change the path. Each scan is taken
+    instantaneously at its stamp (no motion during the sweep, so no deskewing is needed).
     """
     if n_scans < 1:
         raise ConfigError(f"--scans must be >= 1, got {n_scans}")
