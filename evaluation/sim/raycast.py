@@ -48,14 +48,18 @@ def raycast_distances(
         directions: ``(R, 2)`` ray directions (normalised here).
         max_range: rays are followed up to this distance (m).
     """
-    occ = np.ascontiguousarray(occupied, dtype=bool)
+    occ = np.asarray(occupied, dtype=bool)
     h, w = occ.shape
-    flat = occ.ravel()
+    # codes on a grid with a one-cell border: 0 free/unknown, 1 occupied, 2 outside the map
+    codes = np.full((h + 2, w + 2), 2, dtype=np.uint8)
+    codes[1:-1, 1:-1] = occ
+    flat = codes.ravel()
+    stride = w + 2
     p = np.asarray(starts, dtype=np.float64).reshape(-1, 2)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 2)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     g = (p - np.asarray(origin_xy, dtype=np.float64)) / resolution  # position in cell units
-    if g.size and (g.min(axis=0) < 0).any() | (g[:, 0].max() >= w) | (g[:, 1].max() >= h):
+    if g.size and ((g.min(axis=0) < 0).any() or g[:, 0].max() >= w or g[:, 1].max() >= h):
         raise GeometryError("ray origins must lie inside the grid")
     n = len(p)
     out = np.full(n, np.inf)
@@ -64,8 +68,6 @@ def raycast_distances(
     ix = np.floor(g[:, 0]).astype(np.int64)
     iy = np.floor(g[:, 1]).astype(np.int64)
     dx, dy = d[:, 0], d[:, 1]
-    step_x = np.where(dx >= 0, 1, -1).astype(np.int64)
-    step_y = np.where(dy >= 0, 1, -1).astype(np.int64)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_x = np.where(dx != 0, resolution / np.abs(dx), np.inf)
         inv_y = np.where(dy != 0, resolution / np.abs(dy), np.inf)
@@ -74,25 +76,28 @@ def raycast_distances(
         frac_y = np.where(dy > 0, iy + 1 - g[:, 1], g[:, 1] - iy)
         tmax_x = np.where(dx != 0, frac_x * inv_x, np.inf)
         tmax_y = np.where(dy != 0, frac_y * inv_y, np.inf)
+    # walk flat indices of the padded grid: a step in x is ±1, in y ±stride
+    cell = (iy + 1) * stride + (ix + 1)
+    step_x = np.where(dx >= 0, 1, -1).astype(np.int64)
+    step_y = np.where(dy >= 0, stride, -stride).astype(np.int64)
     t = np.zeros(n)  # distance at which the ray entered its current cell
     idx = np.arange(n)
     while idx.size:
-        inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h) & (t <= max_range)
-        hit = inside & flat[np.where(inside, iy * w + ix, 0)]
-        if hit.any():
+        code = flat[cell]
+        done = (code != 0) | (t > max_range)
+        if done.any():
+            hit = done & (code == 1) & (t <= max_range)
             out[idx[hit]] = t[hit]
-        keep = inside & ~hit
-        if not keep.all():
-            idx, ix, iy, t = idx[keep], ix[keep], iy[keep], t[keep]
+            keep = ~done
+            idx, cell, t = idx[keep], cell[keep], t[keep]
             tmax_x, tmax_y, inv_x, inv_y = tmax_x[keep], tmax_y[keep], inv_x[keep], inv_y[keep]
             step_x, step_y = step_x[keep], step_y[keep]
         # advance across the nearer boundary
         mx = tmax_x < tmax_y
-        t = np.where(mx, tmax_x, tmax_y)
-        ix = ix + np.where(mx, step_x, 0)
-        iy = iy + np.where(mx, 0, step_y)
-        tmax_x = tmax_x + np.where(mx, inv_x, 0.0)
-        tmax_y = tmax_y + np.where(mx, 0.0, inv_y)
+        t = np.minimum(tmax_x, tmax_y)
+        cell = cell + np.where(mx, step_x, step_y)
+        tmax_x = np.where(mx, tmax_x + inv_x, tmax_x)
+        tmax_y = np.where(mx, tmax_y, tmax_y + inv_y)
     return out
 
 
