@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import abc
 import bisect
+import contextlib
 import functools
 import math
 from collections import deque
@@ -630,6 +631,10 @@ class RosLogReader(LogReader):
     def _decode(self, raw: RawMessage) -> Any:
         """Deserialise one message (raises LogFormatError naming the message)."""
 
+    def _session(self) -> contextlib.AbstractContextManager:
+        """Resources kept open across the several passes of one frames()/info() call."""
+        return contextlib.nullcontext()
+
     # -- topic roles ------------------------------------------------------------------------
 
     def choose_topics(self) -> TopicChoice:
@@ -718,86 +723,87 @@ class RosLogReader(LogReader):
     def frames(self) -> Iterator[Frame]:
         """Every scan of the sensor topic as a Frame (in log order), with ``odom`` /
         ``ground_truth`` interpolated to the scan stamp and ``base_T_sensor`` from TF."""
-        choice = self.choose_topics()
-        laser = choice.sensor.msgtype == LASER_SCAN
-        batch_size = 64 if laser else 1
-        max_pending = self.max_pending if laser else 16
-        tf = TfBuffer()
-        for name in choice.tf_static:
-            for raw in self._raw_messages({name}):
-                self._add_tf(tf, raw, static=True)
-        odom = PoseTrack(self.max_gap) if choice.odom else None
-        gt = PoseTrack(self.max_gap) if choice.ground_truth else None
-        odom_child: str | None = None
-        if choice.odom is not None:
-            first_odom = self._first(choice.odom.name)
-            odom_child = strip_frame(first_odom.child_frame_id) if first_odom is not None else None
-        # Dynamic /tf is only needed when the static tree does not already mount the sensor on the base.
-        need_tf = bool(choice.tf)
-        first_scan = self._first(choice.sensor.name)
-        if need_tf and first_scan is not None:
-            sensor0 = strip_frame(first_scan.header.frame_id)
-            need_tf = not any(
-                b == sensor0 or (b in tf and sensor0 in tf and tf.lookup(b, sensor0, 0.0) is not None)
-                for b in self._base_candidates(odom_child)
-            )
-        wanted = {choice.sensor.name, *choice.tf_static}
-        if need_tf:
-            wanted.update(choice.tf)
-        for c in (choice.odom, choice.ground_truth):
-            if c is not None:
-                wanted.add(c.name)
+        with self._session():
+            choice = self.choose_topics()
+            laser = choice.sensor.msgtype == LASER_SCAN
+            batch_size = 64 if laser else 1
+            max_pending = self.max_pending if laser else 16
+            tf = TfBuffer()
+            for name in choice.tf_static:
+                for raw in self._raw_messages({name}):
+                    self._add_tf(tf, raw, static=True)
+            odom = PoseTrack(self.max_gap) if choice.odom else None
+            gt = PoseTrack(self.max_gap) if choice.ground_truth else None
+            odom_child: str | None = None
+            if choice.odom is not None:
+                first_odom = self._first(choice.odom.name)
+                odom_child = strip_frame(first_odom.child_frame_id) if first_odom is not None else None
+            # Dynamic /tf is only needed when the static tree does not already mount the sensor on the base.
+            need_tf = bool(choice.tf)
+            first_scan = self._first(choice.sensor.name)
+            if need_tf and first_scan is not None:
+                sensor0 = strip_frame(first_scan.header.frame_id)
+                need_tf = not any(
+                    b == sensor0 or (b in tf and sensor0 in tf and tf.lookup(b, sensor0, 0.0) is not None)
+                    for b in self._base_candidates(odom_child)
+                )
+            wanted = {choice.sensor.name, *choice.tf_static}
+            if need_tf:
+                wanted.update(choice.tf)
+            for c in (choice.odom, choice.ground_truth):
+                if c is not None:
+                    wanted.add(c.name)
 
-        pending: deque[tuple[RawMessage, Any, int, float, str]] = deque()
-        batch: list[tuple[RawMessage, Any, int, float, str]] = []
+            pending: deque[tuple[RawMessage, Any, int, float, str]] = deque()
+            batch: list[tuple[RawMessage, Any, int, float, str]] = []
 
-        def flush() -> Iterator[Frame]:
-            stamps = [b[3] for b in batch]
-            od = odom.query_many(stamps) if odom is not None else [None] * len(batch)
-            gp = gt.query_many(stamps) if gt is not None else [None] * len(batch)
-            for (raw, msg, k, t, sframe), o, g in zip(batch, od, gp):
-                extra: dict[str, Any] = {"base_T_sensor": self._base_T_sensor(tf, odom_child, sframe, t)}
-                if odom is not None:
-                    extra["odom"] = o
-                if gt is not None:
-                    extra["ground_truth"] = g
-                yield self._to_frame(raw, msg, k, **extra)
-            batch.clear()
+            def flush() -> Iterator[Frame]:
+                stamps = [b[3] for b in batch]
+                od = odom.query_many(stamps) if odom is not None else [None] * len(batch)
+                gp = gt.query_many(stamps) if gt is not None else [None] * len(batch)
+                for (raw, msg, k, t, sframe), o, g in zip(batch, od, gp):
+                    extra: dict[str, Any] = {"base_T_sensor": self._base_T_sensor(tf, odom_child, sframe, t)}
+                    if odom is not None:
+                        extra["odom"] = o
+                    if gt is not None:
+                        extra["ground_truth"] = g
+                    yield self._to_frame(raw, msg, k, **extra)
+                batch.clear()
 
-        def ready(t: float) -> bool:
-            return (odom is None or odom.latest >= t) and (gt is None or gt.latest >= t)
+            def ready(t: float) -> bool:
+                return (odom is None or odom.latest >= t) and (gt is None or gt.latest >= t)
 
-        scan_index = 0
-        for raw in self._raw_messages(wanted):
-            topic = raw.topic
-            if topic == choice.sensor.name:
-                msg = self._decode(raw)
-                if laser:
-                    check_scan(msg, self.path, raw.where)  # fail at the bad message, not a batch later
-                pending.append((raw, msg, scan_index, header_stamp(msg), strip_frame(msg.header.frame_id)))
-                scan_index += 1
-            elif choice.odom is not None and topic == choice.odom.name:
-                assert odom is not None
-                odom.add(*self._pose_sample(raw, self._decode(raw)))
-            elif choice.ground_truth is not None and topic == choice.ground_truth.name:
-                assert gt is not None
-                gt.add(*self._pose_sample(raw, self._decode(raw)))
-            elif topic in choice.tf_static:
-                self._add_tf(tf, raw, static=True)
-            elif topic in choice.tf:
-                self._add_tf(tf, raw, static=False)
-            while pending and (ready(pending[0][3]) or len(pending) > max_pending):
-                batch.append(pending.popleft())
-            if len(batch) >= batch_size:
+            scan_index = 0
+            for raw in self._raw_messages(wanted):
+                topic = raw.topic
+                if topic == choice.sensor.name:
+                    msg = self._decode(raw)
+                    if laser:
+                        check_scan(msg, self.path, raw.where)  # fail at the bad message, not a batch later
+                    pending.append((raw, msg, scan_index, header_stamp(msg), strip_frame(msg.header.frame_id)))
+                    scan_index += 1
+                elif choice.odom is not None and topic == choice.odom.name:
+                    assert odom is not None
+                    odom.add(*self._pose_sample(raw, self._decode(raw)))
+                elif choice.ground_truth is not None and topic == choice.ground_truth.name:
+                    assert gt is not None
+                    gt.add(*self._pose_sample(raw, self._decode(raw)))
+                elif topic in choice.tf_static:
+                    self._add_tf(tf, raw, static=True)
+                elif topic in choice.tf:
+                    self._add_tf(tf, raw, static=False)
+                while pending and (ready(pending[0][3]) or len(pending) > max_pending):
+                    batch.append(pending.popleft())
+                if len(batch) >= batch_size:
+                    yield from flush()
+                oldest = batch[0][3] if batch else (pending[0][3] if pending else None)
+                for track in (odom, gt):
+                    if track is not None and track.stamps:
+                        track.trim(track.latest if oldest is None else min(oldest, track.latest))
+            batch.extend(pending)
+            pending.clear()
+            if batch:
                 yield from flush()
-            oldest = batch[0][3] if batch else (pending[0][3] if pending else None)
-            for track in (odom, gt):
-                if track is not None and track.stamps:
-                    track.trim(track.latest if oldest is None else min(oldest, track.latest))
-        batch.extend(pending)
-        pending.clear()
-        if batch:
-            yield from flush()
 
     # -- info -------------------------------------------------------------------------------
 

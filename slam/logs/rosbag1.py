@@ -13,6 +13,7 @@ decompressed chunk at a time; the frame assembly itself is streaming (see
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -33,6 +34,20 @@ class Ros1BagReader(RosLogReader):
         super().__init__(path, topic, **kwargs)
         self._topics: list[TopicInfo] | None = None
         self._store = None
+        self._shared: Any = None  # an open rosbags Reader during one frames() call
+
+    @contextlib.contextmanager
+    def _session(self) -> Iterator[None]:
+        """Open the bag (and parse its index) once for all passes of a frames() call."""
+        if self._shared is not None:
+            yield
+            return
+        self._shared = self._open()
+        try:
+            yield
+        finally:
+            reader, self._shared = self._shared, None
+            reader.close()
 
     def _open(self):
         from rosbags.rosbag1 import Reader, ReaderError
@@ -74,7 +89,8 @@ class Ros1BagReader(RosLogReader):
         from rosbags.rosbag1 import ReaderError
 
         self._load_meta()
-        reader = self._open()
+        own = self._shared is None
+        reader = self._open() if own else self._shared
         counts: dict[str, int] = {}
         last = "the first message"
         try:
@@ -94,7 +110,8 @@ class Ros1BagReader(RosLogReader):
                 last = f"{conn.topic} message {k}"
                 yield RawMessage(k, conn.topic, normalize_msgtype(conn.msgtype), int(t_ns), data, last)
         finally:
-            reader.close()
+            if own:
+                reader.close()
 
     def _decode(self, raw: RawMessage) -> Any:
         assert self._store is not None
