@@ -27,7 +27,7 @@ _RC = {
     "figure.dpi": 110,
 }
 
-_COLOURS = {"estimate": "#d62728", "odometry": "#7f7f7f", "ground truth": "#1f77b4"}
+_COLOURS = {"estimate": "#d62728", "odometry": "#ff7f0e", "ground truth": "#1f77b4"}
 
 
 def _plt():
@@ -78,8 +78,9 @@ def trajectory_map_png(
             segs = np.asarray(loops, float)
             xs = np.column_stack([segs[:, 0, 0], segs[:, 1, 0], np.full(len(segs), np.nan)]).ravel()
             ys = np.column_stack([segs[:, 0, 1], segs[:, 1, 1], np.full(len(segs), np.nan)]).ravel()
-            ax.plot(xs, ys, color="#2ca02c", lw=1.5, alpha=0.9, label=f"loop closures ({len(segs)})")
-            ax.plot(segs[:, :, 0].ravel(), segs[:, :, 1].ravel(), "o", color="#2ca02c", ms=3, alpha=0.9)
+            ax.plot(xs, ys, color="#2ca02c", lw=1.5, alpha=0.9, zorder=7, label=f"loop closures ({len(segs)})")
+            ax.plot(segs[:, :, 0].ravel(), segs[:, :, 1].ravel(), "o", color="#2ca02c", ms=4, zorder=7,
+                    markerfacecolor="none")
         for label, P in paths.items():
             P = np.asarray(P, float)
             if len(P) == 0:
