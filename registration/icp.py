@@ -27,7 +27,7 @@ from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
 
-__all__ = ["IcpTarget", "IcpResult", "icp", "robust_weights", "pose_increment"]
+__all__ = ["IcpTarget", "IcpResult", "icp", "evaluate_alignment", "robust_weights", "pose_increment"]
 
 
 class IcpTarget:
@@ -149,9 +149,12 @@ def _prepare(source: ArrayLike, tgt: IcpTarget, init: ArrayLike | None, config: 
     return S, T
 
 
-def finish(S: Array, tgt: IcpTarget, T: Array, gate: float, config: IcpConfig, iterations: int,
-           converged: bool) -> IcpResult:
-    """Final correspondences at *gate*, RMSE, covariance and χ² test of a converged pose *T*."""
+def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: IcpConfig, iterations: int = 0,
+                       converged: bool = True) -> IcpResult:
+    """Correspondences at *gate*, RMSE, covariance and χ² test of a given pose ``T = target_T_source``.
+
+    Used at the end of every ICP, and to attach a covariance to poses found by another
+    registration (KISS-ICP). *S* is ``(N, d)`` in the source frame (m)."""
     d = tgt.dim
     R, t = T[:d, :d], T[:d, 3]
     moved = S @ R.T + t
@@ -224,4 +227,4 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
             if dt < config.tol_translation and dr < config.tol_rotation:
                 converged = True
                 break
-    return finish(S, tgt, T, config.gates[-1], config, it, converged)
+    return evaluate_alignment(S, tgt, T, config.gates[-1], config, it, converged)

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se2_exp, se3_exp
-from .icp import IcpResult, IcpTarget, _as_target, _prepare, finish, robust_weights
+from .icp import IcpResult, IcpTarget, _as_target, _prepare, evaluate_alignment, robust_weights
 
 Array = NDArray[np.float64]
 
@@ -31,6 +31,13 @@ def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -
     _, nn = tree.query(points, k=k, workers=workers)
     nb = tree.data[nn]  # (N, k, d)
     c = nb - nb.mean(axis=1, keepdims=True)
+    if nb.shape[2] == 2:
+        # 2×2 scatter [[a, b], [b, c]]: the principal axis is at ½·atan2(2b, a − c); the normal is ⊥ to it.
+        a = np.einsum("nk,nk->n", c[:, :, 0], c[:, :, 0])
+        b = np.einsum("nk,nk->n", c[:, :, 0], c[:, :, 1])
+        cc = np.einsum("nk,nk->n", c[:, :, 1], c[:, :, 1])
+        phi = 0.5 * np.arctan2(2.0 * b, a - cc)
+        return np.column_stack([-np.sin(phi), np.cos(phi)])
     C = np.einsum("nki,nkj->nij", c, c)
     _, V = np.linalg.eigh(C)
     return V[:, :, 0]
@@ -77,4 +84,4 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
             if np.linalg.norm(xi[: d]) < config.tol_translation and np.linalg.norm(xi[d:]) < config.tol_rotation:
                 converged = True
                 break
-    return finish(S, tgt, T, config.gates[-1], config, it, converged)
+    return evaluate_alignment(S, tgt, T, config.gates[-1], config, it, converged)

@@ -1,0 +1,219 @@
+"""Scan odometry with one interface for two sources: KISS-ICP and our scan-to-local-map SVD-ICP.
+
+Feed :class:`~registration.frame.Frame` objects in time order to ``update``; each call returns an
+:class:`OdometryStep` with ``world_T_sensor`` (4×4; *world* is the sensor frame of the first scan),
+the relative pose ``prev_T_curr`` of this scan in the previous one, and its covariance in the
+project tangent convention (``prev_T_curr_true = prev_T_curr · Exp(δ)``, translation first; 3×3
+for planar scans, 6×6 for 3D). The covariance treats the map (or the previous scan) as fixed, so
+it is the covariance of the pose increment.
+
+When a frame carries wheel odometry (``Frame.odom``) and ``use_wheel_odometry`` is on, the
+predicted increment ``base_T_sensor⁻¹ · odom_prev⁻¹ · odom_curr · base_T_sensor`` is the initial
+guess; otherwise a constant-velocity guess (the last increment) is used.
+
+* :class:`KissOdometry` — KISS-ICP (Vizzo et al., "KISS-ICP: In Defense of Point-to-Point ICP",
+  RA-L 2023) through ``kiss_icp.kiss_icp.KissICP``; planar scans become z = 0 points, deskewing off.
+  KISS-ICP gives no covariance: it is computed by :func:`registration.icp.evaluate_alignment` of the
+  current scan against the previous one at the KISS pose (plane model, gate 3σ of KISS's threshold).
+* :class:`IcpOdometry` — our SVD-ICP (:func:`registration.icp.icp`) of each scan against the union
+  of the last ``map_scans`` scans in the world frame.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections import deque
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import geometry as geo
+from .config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
+from .errors import DegenerateInputError, GeometryError
+from .frame import Frame
+from .icp import IcpTarget, evaluate_alignment, icp
+from .voxel import voxel_downsample
+
+Array = NDArray[np.float64]
+
+__all__ = ["OdometryStep", "Odometry", "KissOdometry", "IcpOdometry", "wheel_increment"]
+
+
+@dataclass(frozen=True)
+class OdometryStep:
+    """The odometry output for one frame (poses 4×4, metres/radians).
+
+    Attributes:
+        stamp, index: of the frame.
+        world_T_sensor: sensor pose in the world (= first sensor) frame.
+        world_T_base: robot base pose, ``world_T_sensor · base_T_sensor⁻¹``.
+        prev_T_curr: this sensor pose in the previous one (identity for the first frame).
+        covariance: covariance of δ in ``prev_T_curr · Exp(δ)`` (3×3 / 6×6), None for the first frame
+            or when it could not be computed.
+        accepted: χ² verdict of the registration (None when not tested).
+    """
+
+    stamp: float
+    index: int
+    world_T_sensor: Array
+    world_T_base: Array
+    prev_T_curr: Array
+    covariance: Array | None
+    accepted: bool | None = None
+
+
+def wheel_increment(prev: Frame, curr: Frame) -> Array | None:
+    """Sensor motion predicted by wheel odometry between two frames, or None without odometry."""
+    if prev.odom is None or curr.odom is None:
+        return None
+    B = np.asarray(curr.base_T_sensor, dtype=np.float64)
+    return geo.inverse(B) @ geo.relative(prev.odom, curr.odom) @ B
+
+
+def _planar(T: Array) -> Array:
+    """Project a pose on SE(2) (z = 0, yaw only) — for planar scans fed to a 6-DoF registration."""
+    th = np.arctan2(T[1, 0], T[0, 0])
+    c, s = np.cos(th), np.sin(th)
+    return np.array([[c, -s, 0.0, T[0, 3]], [s, c, 0.0, T[1, 3]], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def _crop(points: Array, min_range: float, max_range: float) -> Array:
+    r = np.linalg.norm(points, axis=1)
+    return points[(r >= min_range) & (r <= max_range)]
+
+
+class Odometry(abc.ABC):
+    """Common interface: ``update(frame) → OdometryStep``; ``run(frames)`` for a whole log."""
+
+    def __init__(self) -> None:
+        self._prev_frame: Frame | None = None
+        self._pose = np.eye(4)
+        self._last_delta = np.eye(4)
+        self.steps: list[OdometryStep] = []
+
+    @property
+    def world_T_sensor(self) -> Array:
+        """The latest sensor pose (identity before the first frame)."""
+        return self._pose.copy()
+
+    def _guess(self, frame: Frame, use_wheel: bool) -> Array:
+        """Predicted ``prev_T_curr``: wheel odometry if allowed and present, else constant velocity."""
+        if use_wheel and self._prev_frame is not None:
+            inc = wheel_increment(self._prev_frame, frame)
+            if inc is not None:
+                return inc
+        return self._last_delta
+
+    def _emit(self, frame: Frame, pose: Array, cov: Array | None, accepted: bool | None) -> OdometryStep:
+        first = self._prev_frame is None
+        rel = np.eye(4) if first else geo.relative(self._pose, pose)
+        if not first:
+            self._last_delta = rel
+        self._pose = pose
+        self._prev_frame = frame
+        step = OdometryStep(frame.stamp, frame.index, pose.copy(), pose @ geo.inverse(frame.base_T_sensor),
+                            rel, cov, accepted)
+        self.steps.append(step)
+        return step
+
+    @abc.abstractmethod
+    def update(self, frame: Frame) -> OdometryStep:
+        """Register one frame (time order) and return its pose and increment covariance."""
+
+    def run(self, frames: Iterable[Frame]) -> list[OdometryStep]:
+        """Feed every frame; returns the steps (also kept in ``self.steps``)."""
+        return [self.update(f) for f in frames]
+
+    def poses(self, base: bool = False) -> Array:
+        """``(N, 4, 4)`` world_T_sensor (or world_T_base) of every frame fed so far."""
+        return np.array([s.world_T_base if base else s.world_T_sensor for s in self.steps]).reshape(-1, 4, 4)
+
+    def stamps(self) -> Array:
+        return np.array([s.stamp for s in self.steps], dtype=np.float64)
+
+
+class KissOdometry(Odometry):
+    """KISS-ICP odometry for 3D clouds and planar scans (z = 0), config mapped from ours."""
+
+    def __init__(self, config: KissOdometryConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or KissOdometryConfig()
+        self._kiss = None
+        self._planar: bool | None = None
+        self._prev_world: Array | None = None
+
+    @property
+    def kiss(self):
+        """The wrapped ``kiss_icp.kiss_icp.KissICP`` (None before the first frame)."""
+        return self._kiss
+
+    def update(self, frame: Frame) -> OdometryStep:
+        from kiss_icp.kiss_icp import KissICP
+
+        if self._kiss is None:
+            self._planar = frame.is_planar
+            self._kiss = KissICP(self.config.to_kiss(planar=self._planar))
+        elif frame.is_planar != self._planar:
+            raise GeometryError(f"{frame.source or 'frame'} {frame.index}: mixed planar and 3D frames")
+        kiss = self._kiss
+        if self._prev_frame is not None:
+            # KISS-ICP predicts last_pose · last_delta; seeding last_delta injects our guess.
+            kiss.last_delta = self._guess(frame, self.config.use_wheel_odometry)
+        sigma = float(kiss.adaptive_threshold.get_threshold())
+        pts3 = frame.points_3d()
+        _, source = kiss.register_frame(pts3, np.zeros(0))
+        pose = np.array(kiss.last_pose, dtype=np.float64)
+        if self._planar:
+            pose = _planar(pose)
+        d = frame.dim
+        cov = accepted = None
+        cfg = self.config
+        if cfg.compute_covariance:
+            src = np.asarray(source, dtype=np.float64)[:, :d]
+            if self._prev_world is not None and len(src) >= 3:
+                icfg = IcpConfig(gates=(3.0 * sigma,), sigma=cfg.covariance_sigma, covariance_model="plane",
+                                 workers=1 if d == 2 else -1)
+                try:
+                    tgt = IcpTarget(self._prev_world, workers=icfg.workers)
+                    res = evaluate_alignment(src, tgt, pose, icfg.gates[0], icfg)
+                    cov, accepted = res.covariance, res.accepted if cfg.covariance_sigma else None
+                except DegenerateInputError:
+                    cov = None
+            vs = kiss.config.mapping.voxel_size * 0.5
+            self._prev_world = geo.transform_points(pose, voxel_downsample(frame.points, vs))
+        return self._emit(frame, pose, cov, accepted)
+
+
+class IcpOdometry(Odometry):
+    """SVD-ICP scan-to-local-map odometry; the map is the last ``map_scans`` scans (world frame)."""
+
+    def __init__(self, config: IcpOdometryConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or IcpOdometryConfig()
+        self._map: deque[Array] = deque(maxlen=self.config.map_scans)
+        self._map_pose: Array | None = None
+
+    def update(self, frame: Frame) -> OdometryStep:
+        cfg = self.config
+        pts = _crop(frame.points, cfg.min_range, cfg.max_range)
+        if self._prev_frame is None:
+            self._map.append(geo.transform_points(np.eye(4), voxel_downsample(pts, cfg.map_voxel_size)))
+            self._map_pose = np.eye(4)
+            return self._emit(frame, np.eye(4), None, None)
+        guess = self._pose @ self._guess(frame, cfg.use_wheel_odometry)
+        target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
+        cov = accepted = None
+        try:
+            res = icp(pts, target, guess, cfg.icp)
+            pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma else None
+        except DegenerateInputError:
+            pose = guess  # too few pairs (e.g. an empty scan): dead-reckon on the guess
+        if frame.is_planar:
+            pose = _planar(pose)
+        moved = geo.relative(self._map_pose, pose)
+        if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance):
+            self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)))
+            self._map_pose = pose
+        return self._emit(frame, pose, cov, accepted)
