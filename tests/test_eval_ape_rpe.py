@@ -172,3 +172,29 @@ def test_metric_pairs_equal_evo_with_stops(rng):
             for all_pairs in (False, True):
                 theirs = [list(p) for p in filter_pairs_by_path(list(P), delta, 0.1 * delta, all_pairs=all_pairs)]
                 assert rpe_pairs(t, delta, "m", all_pairs=all_pairs).tolist() == theirs
+
+
+def test_aligned_ape_and_rpe_are_invariant_to_a_rigid_motion_of_the_estimate(rng):
+    """Moving the estimate by any rigid transform changes neither the SE(3)-aligned APE nor the RPE
+    (Umeyama recovers the motion; relative poses do not see it)."""
+    est, ref = _make_pair(rng, n=150)
+    for _ in range(5):
+        G = geo.se3_exp(rng.normal(0, [10, 10, 10, 2, 2, 2]))
+        moved = Trajectory(est.stamps, G @ est.poses)
+        a0, a1 = evaluate_ape(est, ref, align="se3"), evaluate_ape(moved, ref, align="se3")
+        np.testing.assert_allclose(a1.errors, a0.errors, atol=1e-9)
+        r0, r1 = evaluate_rpe(est, ref, delta=3), evaluate_rpe(moved, ref, delta=3)
+        np.testing.assert_allclose(r1.errors, r0.errors, atol=1e-9)
+
+
+def test_sim3_alignment_removes_a_pure_similarity():
+    """An estimate that is exactly s·R·ref + t has zero APE after Sim(3) alignment but not after SE(3)."""
+    n = 50
+    ref = Trajectory(np.arange(n, dtype=float), geo.se3_exp(np.column_stack([np.linspace(0, 20, n), np.sin(np.arange(n)),
+                                                                             np.zeros(n), np.zeros((n, 2)), np.linspace(0, 3, n)])))
+    G = geo.xytheta_to_matrix(2.0, -1.0, 0.4)
+    P = G @ ref.poses
+    P[:, :3, 3] *= 0.5
+    est = Trajectory(ref.stamps, P)
+    assert evaluate_ape(est, ref, align="sim3").stats["max"] < 1e-9
+    assert evaluate_ape(est, ref, align="se3").stats["max"] > 1.0
