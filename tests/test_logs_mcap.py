@@ -28,10 +28,10 @@ def random_pose(rng, planar=False):
     return geo.se3_exp(np.concatenate([rng.uniform(-20, 20, 3), rng.uniform(-2, 2, 3)]))
 
 
-def write_basic_log(path, n=30, *, odom=True, tf=True, nan_at=None, neg_at=None, empty_at=None, stamp0=1.7e9, chunk_size=1 << 20):
+def write_basic_log(path, n=30, *, odom=True, tf=True, nan_at=None, neg_at=None, empty_at=None, stamp0=1.7e9, chunk_size=1 << 20, compression="zstd"):
     """LaserScan /scan (10 Hz) + /odom + static TF base_link → laser."""
     rng = np.random.default_rng(3)
-    with McapLogWriter(path, chunk_size=chunk_size) as w:
+    with McapLogWriter(path, chunk_size=chunk_size, compression=compression) as w:
         if tf:
             w.write_tf(stamp0, [("base_link", "laser", geo.xytheta_to_matrix(0.3, -0.1, 0.2))], static=True)
         for i in range(n):
@@ -467,10 +467,11 @@ def test_truncated_file(tmp_path, cut, chunk_size):
     _expect(p, "truncated", fn=lambda r: r.info())
 
 
-def test_corrupt_bytes(tmp_path):
-    """Overwritten bytes inside the data section are detected (chunk CRC / decompression / CDR)
-    and reported as LogFormatError naming the file and position."""
-    src = write_basic_log(tmp_path / "a.mcap", n=400)
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_corrupt_bytes(tmp_path, compression):
+    """Overwritten bytes inside the data section are detected (chunk CRC, decompression) and
+    reported as LogFormatError naming the file and position, whatever the chunk compression."""
+    src = write_basic_log(tmp_path / "a.mcap", n=400, compression=compression)
     data = bytearray(src.read_bytes())
     mid = len(data) // 3
     data[mid : mid + 64] = bytes(64)

@@ -32,8 +32,9 @@ class McapReader(RosLogReader):
 
     format = "mcap"
 
-    def __init__(self, path: str | Path, topic: str | None = None, **kwargs: Any) -> None:
+    def __init__(self, path: str | Path, topic: str | None = None, *, validate_crcs: bool = True, **kwargs: Any) -> None:
         super().__init__(path, topic, **kwargs)
+        self.validate_crcs = validate_crcs  # chunk CRCs: catches flipped bytes in uncompressed chunks
         self._topics: list[TopicInfo] | None = None
         self._store: Any = None
         self._encoding: dict[str, str] = {}  # topic -> message encoding
@@ -57,9 +58,9 @@ class McapReader(RosLogReader):
         summary = self._summary(fh)
         fh.seek(0)
         if summary is not None and summary.chunk_indexes:
-            return SeekingReader(fh, validate_crcs=True).iter_messages(topics=topics, log_time_order=True)
+            return SeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=True)
         # File order: log_time_order=True would make the mcap library load the whole file to sort it.
-        return NonSeekingReader(fh, validate_crcs=True).iter_messages(topics=topics, log_time_order=False)
+        return NonSeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=False)
 
     def _open(self):
         try:

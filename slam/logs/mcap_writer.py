@@ -6,8 +6,11 @@ ROS 2 message definition with every dependent type appended (separated by a line
 and ``MSG: pkg/msg/Type``), as ``ros2 bag record`` writes it. The mcap ``Writer`` adds chunk
 indexes, statistics and the summary section, so readers can seek and count without a scan.
 
-Stamps are float seconds, converted exactly to ``builtin_interfaces/Time`` (sec, nanosec); the
-MCAP ``log_time`` and ``publish_time`` are the same stamp in integer nanoseconds. Poses are 4×4
+Stamps are float seconds, rounded to the nearest nanosecond as ``builtin_interfaces/Time``
+(sec, nanosec) without going through a lossy ``stamp * 1e9``; the MCAP ``log_time`` and
+``publish_time`` are the same stamp in integer nanoseconds. Reading back gives the written float
+exactly for every stamp ≥ 10⁷ s (epoch times) and for every stamp that is the float nearest to a
+whole number of nanoseconds (e.g. ``k / 10``, not ``k * 0.1``). Poses are 4×4
 matrices ``parent_T_child`` (metres); quaternions are written ``(x, y, z, w)``.
 
 The file is written to a temporary sibling and renamed on a clean exit of the ``with`` block
