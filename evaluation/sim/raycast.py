@@ -2,7 +2,7 @@
 
 Exact grid traversal after Amanatides & Woo, "A Fast Voxel Traversal Algorithm for Ray Tracing"
 (Eurographics 1987), eqs. for tMax/tDelta, run in numpy over all rays in lock-step: each
-iteration advances every still-active ray by one cell boundary crossing; finished rays are
+iteration advances every still-active ray (in batches of 50k rays) by one cell boundary crossing; finished rays are
 dropped so the work is proportional to the total number of visited cells.
 
 Range semantics (decided here, used by the whole simulator):
@@ -29,6 +29,9 @@ from .world import World
 __all__ = ["cast_rays", "raycast_distances"]
 
 
+_CHUNK = 50_000  # rays per lock-step batch: keeps the working arrays in cache (measured best of 8k…400k)
+
+
 def raycast_distances(
     occupied: NDArray[np.bool_],
     origin_xy: ArrayLike,
@@ -53,18 +56,25 @@ def raycast_distances(
     # codes on a grid with a one-cell border: 0 free/unknown, 1 occupied, 2 outside the map
     codes = np.full((h + 2, w + 2), 2, dtype=np.uint8)
     codes[1:-1, 1:-1] = occ
-    flat = codes.ravel()
-    stride = w + 2
     p = np.asarray(starts, dtype=np.float64).reshape(-1, 2)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 2)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     g = (p - np.asarray(origin_xy, dtype=np.float64)) / resolution  # position in cell units
     if g.size and ((g.min(axis=0) < 0).any() or g[:, 0].max() >= w or g[:, 1].max() >= h):
         raise GeometryError("ray origins must lie inside the grid")
-    n = len(p)
+    out = np.full(len(p), np.inf)
+    for i in range(0, len(p), _CHUNK):
+        out[i: i + _CHUNK] = _traverse(codes, g[i: i + _CHUNK], d[i: i + _CHUNK], resolution, max_range)
+    return out
+
+
+def _traverse(codes: NDArray[np.uint8], g: NDArray[np.float64], d: NDArray[np.float64], resolution: float,
+              max_range: float) -> NDArray[np.float64]:
+    """Lock-step Amanatides–Woo traversal of rays starting at cell coordinates *g* (see above)."""
+    flat = codes.ravel()
+    stride = codes.shape[1]
+    n = len(g)
     out = np.full(n, np.inf)
-    if n == 0:
-        return out
     ix = np.floor(g[:, 0]).astype(np.int64)
     iy = np.floor(g[:, 1]).astype(np.int64)
     dx, dy = d[:, 0], d[:, 1]
