@@ -321,6 +321,10 @@ def build_report(
         except json.JSONDecodeError as exc:
             raise MapFormatError(rd / "summary.json", f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
         tm = _timings(summary) if isinstance(summary, dict) else {}
+        counts = {k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+                  and not k.endswith("_time_s")} if isinstance(summary, dict) else {}
+        if counts:
+            m["summary"] = counts  # top-level numbers of summary.json (scan, keyframe, loop counts ...)
         if tm:
             m["timings_s"] = tm
         else:
