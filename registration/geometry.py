@@ -56,6 +56,8 @@ __all__ = [
     "to_gtsam_pose3",
     "from_gtsam_pose3",
     "planar_to_3d",
+    "adjoint",
+    "compound_covariance",
 ]
 
 _EPS = 1e-12
@@ -366,6 +368,39 @@ def planar_to_3d(T2: ArrayLike) -> Array:
     T[..., 2, 2] = 1.0
     T[..., 3, 3] = 1.0
     return T
+
+
+# ----------------------------------------------------------------------------- adjoints
+
+def adjoint(T: ArrayLike, planar: bool = False) -> Array:
+    """Adjoint of a pose in the project's tangent order (translation first): Exp(Ad_T ξ) = T Exp(ξ) T⁻¹.
+
+    3D ``(ρ, φ)``: ``[[R, [t]×R], [0, R]]`` (Barfoot eq. 7.45). Planar ``(x, y, θ)`` (*planar*):
+    ``[[R₂, (t_y, −t_x)ᵀ], [0, 1]]``.
+    """
+    T = np.asarray(T, dtype=float)
+    R, t = T[:3, :3], T[:3, 3]
+    if planar:
+        A = np.eye(3)
+        A[:2, :2] = R[:2, :2]
+        A[0, 2], A[1, 2] = t[1], -t[0]
+        return A
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[:3, 3:] = so3_hat(t) @ R
+    return A
+
+
+def compound_covariance(cov_ab: ArrayLike, b_T_c: ArrayLike, cov_bc: ArrayLike) -> Array:
+    """Covariance of ``a_T_c = a_T_b · b_T_c`` with right perturbations on all three poses.
+
+    ``a_T_b Exp(δ₁) b_T_c Exp(δ₂) = a_T_c Exp(Ad(b_T_c⁻¹) δ₁ + δ₂)`` to first order, hence
+    ``Σ_ac = Ad Σ_ab Adᵀ + Σ_bc`` with independent increments (Barfoot §7.3.3, eq. 7.262).
+    """
+    cov_ab = np.asarray(cov_ab, dtype=float)
+    A = adjoint(inverse(b_T_c), planar=cov_ab.shape[0] == 3)
+    return A @ cov_ab @ A.T + np.asarray(cov_bc, dtype=float)
 
 
 # ----------------------------------------------------------------------------- gtsam

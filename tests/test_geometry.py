@@ -149,3 +149,26 @@ def test_wrap_angle_range(angles):
     assert np.all(w >= -np.pi) and np.all(w < np.pi)
     np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-9)
     np.testing.assert_allclose(np.sin(w), np.sin(a), atol=1e-9)
+
+
+def test_adjoint_identity_3d_and_planar(rng):
+    """Exp(Ad_T ξ) = T Exp(ξ) T⁻¹ in SE(3) (ρ, φ) and SE(2) (x, y, θ) orderings."""
+    T = random_poses(rng, 1)[0]
+    xi = rng.normal(size=6) * 0.3
+    np.testing.assert_allclose(G.se3_exp(G.adjoint(T) @ xi), T @ G.se3_exp(xi) @ G.inverse(T), atol=1e-10)
+    P = G.xytheta_to_matrix(1.0, -2.0, 0.7)
+    xi2 = np.array([0.2, -0.1, 0.3])
+    np.testing.assert_allclose(G.se2_exp(G.adjoint(P, planar=True) @ xi2), P @ G.se2_exp(xi2) @ G.inverse(P),
+                               atol=1e-10)
+
+
+def test_compound_covariance_matches_monte_carlo(rng):
+    """Σ_ac from compound_covariance matches the sample covariance of Log(T_ac⁻¹ T_ac_true)."""
+    Tab, Tbc = G.xytheta_to_matrix(1.0, 0.5, 0.4), G.xytheta_to_matrix(2.0, -1.0, -0.8)
+    S1, S2 = np.diag([1e-4, 4e-4, 1e-4]), np.diag([9e-4, 1e-4, 4e-4])
+    n = 20000
+    d1 = rng.multivariate_normal(np.zeros(3), S1, n)
+    d2 = rng.multivariate_normal(np.zeros(3), S2, n)
+    Tac_true = Tab @ G.se2_exp(d1) @ Tbc @ G.se2_exp(d2)
+    err = G.se2_log(G.inverse(Tab @ Tbc) @ Tac_true)
+    np.testing.assert_allclose(np.cov(err.T), G.compound_covariance(S1, Tbc, S2), rtol=0.05, atol=2e-6)
