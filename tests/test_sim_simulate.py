@@ -196,3 +196,17 @@ def test_repo_has_no_stdr_maps():
     """GPL STDR maps are read from ../shared only, never copied into the project."""
     names = {"simple_rooms.png", "sparse_obstacles.png", "robocup.png", "mines.png"}
     assert not any(p.name in names for p in REPO.rglob("*.png") if ".venv" not in p.parts)
+
+
+def test_cli_bad_map_yaml(tmp_path, monkeypatch, capsys):
+    """A malformed map_server world gives one `error:` line naming the yaml, exit 2, no log written."""
+    from slam.cli import main
+
+    (tmp_path / "w.yaml").write_text("image: w.pgm\nresolution: -1\norigin: [0, 0, 0]\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as ex:
+        main(["simulate", "w.yaml", "--out", "o.mcap"])
+    assert ex.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "w.yaml" in err[0] and "resolution" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["w.yaml"]
