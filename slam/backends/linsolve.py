@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from registration.errors import GpslamError
 
-__all__ = ["spd_solve", "SOLVERS", "SingularSystemError"]
+__all__ = ["spd_solve", "spd_factor", "SOLVERS", "SingularSystemError"]
 
 SOLVERS = ("splu_mmd", "splu_colamd", "spsolve")
 
@@ -40,3 +40,19 @@ def spd_solve(H: sp.spmatrix, B: NDArray[np.float64], method: str = "splu_mmd") 
     except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
         raise SingularSystemError(f"singular normal equations ({exc}); is the graph connected?") from None
     raise ValueError(f"unknown sparse solver {method!r}; expected one of {SOLVERS}")
+
+
+def spd_factor(H: sp.spmatrix, method: str = "splu_mmd", natural: bool = False):  # type: ignore[no-untyped-def]
+    """Factorise a sparse SPD *H* once; the result has ``.solve(B)`` and ``.perm_c``.
+
+    *natural*: *H* is already in a fill-reducing order (keep it: no new ordering is computed).
+    """
+    H = sp.csc_matrix(H)
+    try:
+        if natural:
+            return spla.splu(H, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        if method == "splu_colamd":
+            return spla.splu(H, permc_spec="COLAMD")
+        return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError as exc:
+        raise SingularSystemError(f"singular normal equations ({exc}); is the graph connected?") from None
