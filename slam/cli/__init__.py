@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "slam.cli.demo_cmd",
     "slam.cli.eval_cmd",
     "slam.cli.simulate_cmd",
+    "slam.cli.solve_cmd",
 )
 
 app = typer.Typer(
