@@ -38,8 +38,10 @@ def block_gp_predict(
     """
     kern = hyp.kernel
     nb = max(1, -(-n_beams // block))
-    lo = np.arange(nb) * block - overlap
-    hi = (np.arange(nb) + 1) * block + overlap
+    sblk = np.minimum(s_beam // block, nb - 1).astype(np.int64)
+    used, qb = np.unique(sblk, return_inverse=True)  # only blocks that hold test points
+    lo = used * block - overlap
+    hi = (used + 1) * block + overlap
     order = np.argsort(x_beam, kind="stable")
     xb_sorted = x_beam[order]
     s = np.searchsorted(xb_sorted, lo, "left")
@@ -49,36 +51,24 @@ def block_gp_predict(
     pos = s[:, None] + np.arange(P)[None, :]
     tmask = np.arange(P)[None, :] < cnt[:, None]
     tidx = order[np.minimum(pos, len(order) - 1)]
-    Xb = X[tidx]  # (nb, P, 2)
+    Xb = X[tidx]  # (nu, P, 2)
     yb = np.where(tmask, y[tidx], 0.0)
     dx = Xb[:, :, None, 0] - Xb[:, None, :, 0]
     dy = Xb[:, :, None, 1] - Xb[:, None, :, 1]
-    D = np.sqrt(dx * dx + dy * dy)
-    K = kern.of_distance(D)
+    K = kern.of_distance(np.sqrt(dx * dx + dy * dy))
     pair = tmask[:, :, None] & tmask[:, None, :]
-    eye = np.eye(P, dtype=bool)[None]
     K = np.where(pair, K, 0.0)
-    K += np.where(eye & tmask[:, :, None], hyp.sigma_n**2, 0.0) + np.where(eye & ~tmask[:, :, None], 1.0, 0.0)
-    Kinv = np.linalg.inv(K)  # (nb, P, P); padding rows stay identity and do not couple
+    ii = np.arange(P)
+    K[:, ii, ii] += np.where(tmask, hyp.sigma_n**2, 1.0)  # padding rows: identity, uncoupled
+    Kinv = np.linalg.inv(K)  # (nu, P, P)
     alpha = np.einsum("bij,bj->bi", Kinv, yb)
-    # test points: sort by block, kernel rows to their block's training points in one gather
-    sblk = np.minimum(s_beam // block, nb - 1).astype(np.int64)
-    qo = np.argsort(sblk, kind="stable")
-    qb = sblk[qo]
-    Q = Xs[qo]
+    # kernel rows of every test point to its block's training points, in one gather
     Xg = Xb[qb]  # (m, P, 2)
-    dx = Q[:, None, 0] - Xg[:, :, 0]
-    dy = Q[:, None, 1] - Xg[:, :, 1]
+    dx = Xs[:, None, 0] - Xg[:, :, 0]
+    dy = Xs[:, None, 1] - Xg[:, :, 1]
     Ks = kern.of_distance(np.sqrt(dx * dx + dy * dy))
     Ks *= tmask[qb]
-    mean_s = np.einsum("mp,mp->m", Ks, alpha[qb])
-    quad = np.empty(len(Q))
-    bounds = np.flatnonzero(np.r_[True, qb[1:] != qb[:-1], True])
-    for u, v in zip(bounds[:-1], bounds[1:]):  # one small matrix product per block, not per cell
-        ks = Ks[u:v]
-        quad[u:v] = np.einsum("mp,mp->m", ks @ Kinv[qb[u]], ks)
-    mean = np.empty(len(Xs))
-    var = np.empty(len(Xs))
-    mean[qo] = mean_s
-    var[qo] = kern.variance - quad
+    mean = np.einsum("mp,mp->m", Ks, alpha[qb])
+    KsKinv = np.matmul(Ks[:, None, :], Kinv[qb])[:, 0, :]  # (m, P): batched row-vector products
+    var = kern.variance - np.einsum("mp,mp->m", KsKinv, Ks)
     return mean, np.maximum(var, 0.0)

@@ -1,0 +1,174 @@
+"""Submaps anchored to keyframes and their BCM fusion into a global map at the current anchor poses.
+
+Each submap keeps Fast-GPOM estimates in information form (Σ μ/σ², Σ 1/σ², see mapping.bcm) on its
+own grid in the **anchor** frame, from the scans assigned to it (poses ``anchor_T_base``). The global
+map is the BCM fusion — a sum in information form — of every submap resampled (nearest cell
+centre) onto the world grid at its anchor pose ``world_T_anchor``. :meth:`SubmapFuser.update_poses`
+(after a pose-graph optimisation) only re-places the submaps whose anchor moved by more than a
+tolerance: their old contribution is subtracted and the new one added; no GP is run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Hashable, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.frame import Frame
+from registration.geometry import inverse, matrix_to_xytheta, relative, wrap_angle
+
+from .bcm import mean_variance, probit_squash
+from .config import MappingConfig
+from .fastgpom import FastGPOM
+from .gp import GPHyperparameters
+from .grid import GridGeometry
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class Submap:
+    """One submap: anchor pose ``world_T_anchor`` (4×4) and a Fast-GPOM grid in the anchor frame."""
+
+    key: Hashable
+    world_T_anchor: Array
+    mapper: FastGPOM
+    scans: int = 0
+    #: cached contribution to the global grid: flat global indices, info and precision values
+    placed: tuple[NDArray[np.int64], Array, Array] | None = None
+    placed_pose: Array | None = None
+    dirty: bool = True
+
+
+@dataclass
+class SubmapFuser:
+    """Global map = BCM fusion of submaps placed at their anchor poses.
+
+    Args:
+        geometry: the world grid of the fused map.
+        config: mapping configuration (Fast-GPOM parameters, squash).
+        submap_half_size: half the side of each submap's square grid around its anchor (m).
+        translation_tol, rotation_tol: an anchor that moved less than this (m, rad) is not re-placed.
+    """
+
+    geometry: GridGeometry
+    config: MappingConfig = field(default_factory=MappingConfig)
+    submap_half_size: float = 8.0
+    translation_tol: float = 1e-3
+    rotation_tol: float = 1e-3
+    hyperparameters: GPHyperparameters | None = None
+    submaps: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.info = np.zeros(self.geometry.shape)
+        self.prec = np.zeros(self.geometry.shape)
+
+    def add_submap(self, key: Hashable, world_T_anchor: Array) -> Submap:
+        """Start a submap anchored at keyframe *key* with pose ``world_T_anchor``."""
+        h = self.submap_half_size
+        r = self.geometry.resolution
+        n = int(np.ceil(2 * h / r))
+        g = GridGeometry((-n * r / 2, -n * r / 2), r, (n, n))
+        sm = Submap(key, np.array(world_T_anchor, float), FastGPOM(g, self.config, self.hyperparameters))
+        self.submaps[key] = sm
+        return sm
+
+    def add_scan(self, key: Hashable, frame: Frame, world_T_base: Array) -> None:
+        """Fuse a scan into submap *key*; its pose enters relative to the anchor (anchor_T_base)."""
+        sm = self.submaps[key]
+        sm.mapper.update(frame, relative(sm.world_T_anchor, world_T_base))
+        if self.hyperparameters is None:  # fitted on the first frame, then shared by all submaps
+            self.hyperparameters = sm.mapper.hyp
+        sm.scans += 1
+        sm.dirty = True
+
+    # ------------------------------------------------------------------------ placement
+    def _contribution(self, sm: Submap) -> tuple[NDArray[np.int64], Array, Array]:
+        """Resample a submap onto the world grid at its anchor pose (nearest submap cell centre)."""
+        lg = sm.mapper.grid.geometry
+        prec = sm.mapper.grid.prec
+        ys, xs = np.nonzero(prec.any(axis=1))[0], np.nonzero(prec.any(axis=0))[0]
+        empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+        if len(ys) == 0:
+            return empty
+        x0, x1 = lg.origin[0] + xs[0] * lg.resolution, lg.origin[0] + (xs[-1] + 1) * lg.resolution
+        y0, y1 = lg.origin[1] + ys[0] * lg.resolution, lg.origin[1] + (ys[-1] + 1) * lg.resolution
+        corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
+        T = sm.world_T_anchor
+        wc = corners @ T[:2, :2].T + T[:2, 3]
+        centre = 0.5 * (wc.min(0) + wc.max(0))
+        rows, cols = self.geometry.window(centre, float(np.max(wc.max(0) - wc.min(0))) / 2 + lg.resolution)
+        if rows.stop <= rows.start or cols.stop <= cols.start:
+            return empty
+        x, y = self.geometry.window_in_frame(rows, cols, inverse(T))
+        iy, ix = lg.world_to_cell(np.stack([x, y], -1))
+        ok = lg.inside(iy, ix)
+        sel = np.flatnonzero(ok)
+        liy, lix = iy.ravel()[sel], ix.ravel()[sel]
+        p = prec[liy, lix]
+        keep = p > 0
+        sel, liy, lix = sel[keep], liy[keep], lix[keep]
+        w = cols.stop - cols.start
+        g = (rows.start + sel // w) * self.geometry.shape[1] + cols.start + sel % w
+        return g, sm.mapper.grid.info[liy, lix], p[keep]
+
+    def _place(self, sm: Submap) -> None:
+        fi, fp = self.info.reshape(-1), self.prec.reshape(-1)
+        if sm.placed is not None:
+            g, i, p = sm.placed
+            fi[g] -= i
+            fp[g] -= p
+        sm.placed = self._contribution(sm)
+        sm.placed_pose = sm.world_T_anchor.copy()
+        g, i, p = sm.placed
+        fi[g] += i
+        fp[g] += p
+        sm.dirty = False
+
+    def _moved(self, a: Array, b: Array) -> bool:
+        d = matrix_to_xytheta(relative(a, b))
+        return bool(np.hypot(d[0], d[1]) > self.translation_tol or abs(wrap_angle(d[2])) > self.rotation_tol)
+
+    def update_poses(self, anchors: Mapping[Hashable, Array]) -> int:
+        """Set new anchor poses (e.g. after pose-graph optimisation) and recompose the global map.
+
+        Only submaps that moved by more than the tolerances (or received scans) are re-placed; no
+        GP is evaluated. Returns the number of submaps re-placed.
+        """
+        n = 0
+        for key, T in anchors.items():
+            sm = self.submaps[key]
+            T = np.asarray(T, float)
+            moved = sm.placed_pose is None or self._moved(sm.placed_pose, T)
+            sm.world_T_anchor = T.copy()
+            if moved or sm.dirty:
+                self._place(sm)
+                n += 1
+        for sm in self.submaps.values():
+            if sm.dirty and sm.key not in anchors:
+                self._place(sm)
+                n += 1
+        return n
+
+    def recompose(self) -> None:
+        """Rebuild the global grid from scratch from every submap (clears accumulated round-off)."""
+        self.info[:] = 0.0
+        self.prec[:] = 0.0
+        for sm in self.submaps.values():
+            sm.placed = None
+            self._place(sm)
+
+    def to_map(self):
+        """The fused :class:`~mapping.occupancy_map.OccupancyMap` (places dirty submaps first)."""
+        from .occupancy_map import OccupancyMap
+
+        for sm in self.submaps.values():
+            if sm.dirty:
+                self._place(sm)
+        prec = np.maximum(self.prec, 0.0)
+        seen = prec > 1e-9
+        mean, var = mean_variance(np.where(seen, self.info, 0.0), np.where(seen, prec, 0.0))
+        p = probit_squash(mean, var, self.config.squash_alpha, self.config.squash_beta)
+        return OccupancyMap(self.geometry, p, mean, var, seen, "fastgpom-submaps")
