@@ -79,7 +79,7 @@ def _nonfree_tree(world):
 @pytest.mark.parametrize("name,res", [("rooms", 0.05), ("corridor", 0.05), ("obstacles", 0.04)])
 def test_path_collision_free_bounded_and_revisiting(name, res):
     """The tour keeps ≥ robot radius from every occupied/unknown cell (checked at poses and
-    midpoints against cell squares), respects the speed limits per scan, and revisits: two poses
+    midpoints against cell squares), respects the speed and acceleration limits, and revisits: two poses
     ≥ 10 m of travel apart lie within 1 m of each other."""
     world = load_world(name, resolution=res, seed=2)
     radius, v, w = 0.2, 0.5, 1.0
@@ -94,6 +94,10 @@ def test_path_collision_free_bounded_and_revisiting(name, res):
     steps = np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1)
     dth = np.abs((np.diff(p[:, 2]) + np.pi) % (2 * np.pi) - np.pi)
     assert steps.max() <= v * SPEC.period + 1e-9 and dth.max() <= w * SPEC.period + 1e-9
+    # bounded accelerations (0.5 m/s², 2 rad/s²): mean speeds of consecutive intervals differ by ≤ a·dt
+    dt = SPEC.period
+    assert np.abs(np.diff(steps / dt)).max() <= 0.5 * dt + 1e-9
+    assert np.abs(np.diff(dth / dt)).max() <= 2.0 * dt + 1e-9
     travel = np.concatenate([[0.0], np.cumsum(steps)])
     pair_d = np.linalg.norm(p[:, None, :2] - p[None, :, :2], axis=-1)
     far_in_travel = np.abs(travel[:, None] - travel[None, :]) >= 10.0

@@ -12,8 +12,9 @@
 4. Revisits: the tour returns to its start (a closed loop); if the scan budget allows, it is
    driven again (a second lap revisits everything); if it is too long, the longest prefix of the
    tour that still returns to the start within the budget is used.
-5. Motion: a differential-drive robot turns in place at ≤ ``max_turn_rate`` to the next segment
-   heading, then drives straight at ≤ ``max_speed``; poses are sampled every 1/rate_hz seconds.
+5. Motion: a differential-drive robot turns in place to the next segment heading, then drives
+   straight, each with a rest-to-rest trapezoidal velocity profile (speed ≤ ``max_speed``, turn
+   rate ≤ ``max_turn_rate``, bounded accelerations); poses are sampled every 1/rate_hz seconds.
 """
 
 from __future__ import annotations
@@ -81,12 +82,24 @@ def _string_pull(world: World, clear: NDArray[np.float64], pts: NDArray[np.float
     return np.asarray(out)
 
 
+def _trapezoid(amount: NDArray[np.float64], vmax: float, amax: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Peak speed and duration of rest-to-rest moves over *amount* (m or rad) with speed ≤ vmax and
+    acceleration ≤ amax (trapezoidal profile, triangular when too short to reach vmax)."""
+    vp = np.minimum(vmax, np.sqrt(amount * amax))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dur = np.where(amount > 0, amount / np.where(vp > 0, vp, 1.0) + vp / amax, 0.0)
+    return vp, dur
+
+
 def sample_motion(polyline: NDArray[np.float64], heading0: float, max_speed: float, max_turn_rate: float,
-                  dt: float, n: int | None = None) -> tuple[NDArray[np.float64], float]:
+                  dt: float, n: int | None = None, max_accel: float = 0.5,
+                  max_ang_accel: float = 2.0) -> tuple[NDArray[np.float64], float]:
     """Turn-in-place-then-drive motion along *polyline* ``(M, 2)`` starting with heading *heading0*.
 
-    Returns ``(poses (K, 3), duration)`` with poses sampled at ``k·dt`` (all of them, or the first
-    *n*), and the duration (s) of the whole motion. Speeds never exceed the limits.
+    Every turn and every straight segment is a rest-to-rest trapezoidal velocity profile
+    (accelerations ≤ ``max_accel`` m/s², ``max_ang_accel`` rad/s²; speeds ≤ ``max_speed`` m/s,
+    ``max_turn_rate`` rad/s), so velocities are continuous. Returns ``(poses (K, 3), duration)``
+    with poses sampled at ``k·dt`` (all of them, or the first *n*; the robot rests at the end).
     """
     seg = np.diff(polyline, axis=0)
     lens = np.linalg.norm(seg, axis=1)
@@ -99,17 +112,25 @@ def sample_motion(polyline: NDArray[np.float64], heading0: float, max_speed: flo
     headings = np.arctan2(seg[:, 1], seg[:, 0])
     prev = np.concatenate([[heading0], headings[:-1]])
     turns = (headings - prev + np.pi) % (2 * np.pi) - np.pi
-    # primitives: turn k (duration |Δθ|/ω), then drive k (duration L/v)
-    t_turn = np.abs(turns) / max_turn_rate
-    t_drive = lens / max_speed
+    # primitives, interleaved: turn k, then drive k
+    vp_turn, t_turn = _trapezoid(np.abs(turns), max_turn_rate, max_ang_accel)
+    vp_drive, t_drive = _trapezoid(lens, max_speed, max_accel)
+    amount = np.column_stack([np.abs(turns), lens]).ravel()
+    vpeak = np.column_stack([vp_turn, vp_drive]).ravel()
+    acc = np.tile([max_ang_accel, max_accel], len(lens))
     dur = np.column_stack([t_turn, t_drive]).ravel()
     t_end = np.cumsum(dur)
     total = float(t_end[-1])
     k = int(math.floor(total / dt + 1e-9)) + 1 if n is None else n
     t = np.arange(k) * dt
     prim = np.minimum(np.searchsorted(t_end, t, side="right"), len(dur) - 1)
-    t0 = t_end[prim] - dur[prim]
-    frac = np.clip((t - t0) / np.where(dur[prim] > 0, dur[prim], 1.0), 0.0, 1.0)
+    T, L, vp, a = dur[prim], amount[prim], vpeak[prim], acc[prim]
+    tau = np.clip(t - (t_end[prim] - T), 0.0, T)
+    ta = vp / a
+    done = 0.5 * a * ta**2 + vp * (tau - ta)                       # cruising
+    done = np.where(tau < ta, 0.5 * a * tau**2, done)               # accelerating
+    done = np.where(tau > T - ta, L - 0.5 * a * (T - tau) ** 2, done)  # braking
+    frac = np.clip(np.where(L > 0, done / np.where(L > 0, L, 1.0), 1.0), 0.0, 1.0)
     frac = np.where(t >= total, 1.0, frac)
     seg_i = prim // 2
     is_turn = prim % 2 == 0

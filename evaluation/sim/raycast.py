@@ -9,7 +9,9 @@ Range semantics (decided here, used by the whole simulator):
 - the true range is the distance from the sensor to where the beam *enters* the first occupied
   cell (a point on that cell's boundary), or 0 when the sensor sits in an occupied cell;
 - beyond ``range_max`` (or leaving the grid without a hit) the beam has no return: ``inf``;
-- a hit gets Gaussian noise N(0, σ²) and is clipped to ``[range_min, range_max]``; a hit closer
+- a hit gets Gaussian noise N(0, σ²) and is clipped to ``[range_min, range_max)`` (the upper
+  bound is the float32 just below ``range_max``, since readers of LaserScan take ``r ≥ range_max``
+  as a max-range reading, i.e. no return); a hit closer
   than ``range_min`` is therefore reported *at* ``range_min`` (still a return, never ``inf``:
   turning it into a no-return would claim free space through an obstacle). Planned robot paths
   keep a clearance larger than every preset's ``range_min``, so simulated logs do not contain them.
@@ -134,5 +136,11 @@ def cast_rays(
     if range_noise > 0:
         gen = rng if rng is not None else np.random.default_rng()
         r = r + np.where(hit, gen.normal(0.0, range_noise, size=r.shape), 0.0)
-    r[hit] = np.clip(r[hit], spec.range_min, spec.range_max)
+    r[hit] = np.clip(r[hit], spec.range_min, _below(spec.range_max))
     return r
+
+
+def _below(range_max: float) -> float:
+    """The largest float32 value below *range_max*: a noisy hit stays a hit after the float32
+    LaserScan encoding (readers treat ``r ≥ range_max`` as a max-range, i.e. no-return, reading)."""
+    return float(np.nextafter(np.float32(range_max), np.float32(0.0)))
