@@ -144,9 +144,7 @@ class _Roadmap:
     """Coarse safe-cell graph of a world with Dijkstra queries."""
 
     def __init__(self, world: World, clear: NDArray[np.float64], r_safe: float) -> None:
-        self.world = world
-        k = max(1, int(round(0.1 / world.resolution)))
-        self.k = k
+        k = max(1, int(round(0.1 / world.resolution)))  # ≈ 0.1 m roadmap cells
         h, w = clear.shape
         hh, ww = -(-h // k), -(-w // k)
         pad = np.zeros((hh * k, ww * k))
@@ -183,9 +181,6 @@ class _Roadmap:
         nn = len(self.xy)
         self.graph = coo_matrix((np.concatenate([wv, wv]), (np.concatenate([r, c]), np.concatenate([c, r]))),
                                 shape=(nn, nn)).tocsr()
-
-    def node_at(self, xy: NDArray[np.float64]) -> int:
-        return int(np.argmin(np.linalg.norm(self.xy - xy, axis=1)))
 
 
 def _out_and_back(out: NDArray[np.float64], heading0: float, v: float, w: float, dt: float,
@@ -298,7 +293,9 @@ def plan_path(
         loop = full
     else:
         loop = None
-        lo, hi = 1, len(order) - 1  # largest prefix k whose closed tour fits (durations grow with k)
+        # bisection for the longest prefix whose closed tour fits (durations grow roughly with k;
+        # whatever prefix is chosen was checked to fit)
+        lo, hi = 1, len(order) - 1
         while lo <= hi:
             mid = (lo + hi) // 2
             cand_route = route(order[: mid + 1] + [0])
