@@ -158,9 +158,10 @@ def test_round_trip_every_type_decoded_independently(tmp_path, rng):
 
 
 def test_scan_frames_equal_written(tmp_path, rng):
-    """Reader frames hold exactly the written beams: ranges = float64(float32 ranges) with inf for
-    no return, angles = angle_min + i·increment, no_return for inf and ≥ range_max, points the
-    returned beams in [range_min, range_max) at r(cos a, sin a); stamps exact."""
+    """Reader frames hold exactly the written beams at or above range_min: ranges =
+    float64(float32 ranges) with inf for no return, angles = angle_min + i·increment, no_return for
+    inf and ≥ range_max, points the returned beams at r(cos a, sin a), so every beam is either a
+    point or a no-return; stamps exact."""
     p = tmp_path / "s.mcap"
     scans = []
     with McapLogWriter(p) as w:
@@ -174,15 +175,16 @@ def test_scan_frames_equal_written(tmp_path, rng):
     assert [f.index for f in fr] == list(range(12))
     amin, inc = float(np.float32(-2.0)), float(np.float32(0.0175))
     for f, (st, r) in zip(fr, scans):
-        assert f.stamp == st and f.dim == 2 and f.num_beams == 240
-        r64 = r.astype(np.float64)
+        keep = r >= np.float32(0.2)
+        assert f.stamp == st and f.dim == 2 and f.num_beams == keep.sum() and (~keep).any()
+        r64 = r.astype(np.float64)[keep]
         nr = r64 >= np.float32(10.0)
         np.testing.assert_array_equal(f.no_return, nr)
         np.testing.assert_array_equal(f.ranges, np.where(nr, np.inf, r64))
-        np.testing.assert_array_equal(f.angles, amin + np.arange(240) * inc)
-        hit = ~nr & (r64 >= float(np.float32(0.2)))
-        a = f.angles[hit]
-        np.testing.assert_array_equal(f.points, np.column_stack([r64[hit] * np.cos(a), r64[hit] * np.sin(a)]))
+        np.testing.assert_array_equal(f.angles, amin + np.flatnonzero(keep) * inc)
+        a = f.angles[~nr]
+        np.testing.assert_array_equal(f.points, np.column_stack([r64[~nr] * np.cos(a), r64[~nr] * np.sin(a)]))
+        assert len(f.points) + f.no_return.sum() == f.num_beams
         assert f.max_range == float(np.float32(10.0)) and f.odom is None
     inf = McapReader(p).info()
     assert (inf.format, inf.scans, inf.beams_per_scan, inf.dimension, inf.has_odometry) == ("mcap", 12, 240, 2, False)

@@ -234,14 +234,21 @@ def scan_to_frame(msg: Any, path: Path | str, where: str, index: int, **extra: A
 
     ``no_return`` is True for ``+inf`` and for ranges ≥ ``range_max`` (max-range readings);
     those are stored as ``inf`` in ``ranges``. Points are the returned beams with
-    ``range_min ≤ r < range_max``; beams below ``range_min`` are neither hits nor free space.
+    ``range_min ≤ r < range_max`` at ``r·(cos a, sin a)``. Beams below ``range_min`` (e.g. the 0
+    many drivers report for "no measurement") are neither a hit nor free space and are left out
+    of ``angles`` / ``ranges`` / ``no_return`` — as the CARMEN reader drops zero ranges — so every
+    beam of a Frame is either a point or a no-return; the kept beams keep their angles
+    ``angle_min + i·angle_increment``.
     """
     check_scan(msg, path, where)
     angles, ranges = scan_arrays(msg)
     rmin, rmax = float(msg.range_min), float(msg.range_max)
+    keep = ranges >= rmin  # +inf included
+    if not keep.all():
+        angles, ranges = angles[keep], ranges[keep]
     no_return = ranges >= rmax  # +inf included
     ranges = np.where(no_return, np.inf, ranges)
-    hit = ~no_return & (ranges >= rmin)
+    hit = ~no_return
     r, a = ranges[hit], angles[hit]
     points = np.column_stack([r * np.cos(a), r * np.sin(a)])
     return Frame(
