@@ -492,18 +492,42 @@ def test_empty_or_foreign_file(tmp_path, content):
     assert str(p) in str(ei.value)
 
 
+def _bad_logs(d):
+    """(name, path, extra CLI args, text the error must contain) for every kind of bad MCAP input."""
+    out = [("nan", write_basic_log(d / "nan.mcap", nan_at=1), [], "/scan message 1"),
+           ("negative", write_basic_log(d / "neg.mcap", neg_at=2), [], "/scan message 2"),
+           ("empty_scan", write_basic_log(d / "empty_scan.mcap", empty_at=3), [], "/scan message 3")]
+    good = write_basic_log(d / "good.mcap", n=300, chunk_size=8192)
+    data = good.read_bytes()
+    (d / "trunc.mcap").write_bytes(data[: len(data) // 2])
+    out.append(("truncated", d / "trunc.mcap", [], "byte offset"))
+    bad = bytearray(data)
+    bad[len(bad) // 3 : len(bad) // 3 + 64] = bytes(64)
+    (d / "corrupt.mcap").write_bytes(bytes(bad))
+    out.append(("corrupt", d / "corrupt.mcap", [], "byte offset"))
+    out.append(("missing_topic", good, ["--topic", "/nope"], "/nope"))
+    out.append(("unknown_type", good, ["--topic", "/odom"], "unsupported message type"))
+    (d / "empty.mcap").write_bytes(b"")
+    out.append(("empty_file", d / "empty.mcap", [], "empty file"))
+    return out
+
+
 def test_cli_info_bad_input_exit_2(tmp_path, capsys):
-    """`slam info` on a NaN-range log exits 2 with exactly one line on stderr naming file and message."""
+    """For every bad input (NaN, negative, empty scan, truncated, corrupt, missing topic, unknown
+    type, empty file) `slam info` exits 2 with exactly one stderr line naming the file and the
+    position, prints no `scans:` line, and leaves no file behind."""
     from slam.cli import main
 
-    p = write_basic_log(tmp_path / "nan.mcap", nan_at=1)
-    before = set(tmp_path.iterdir())
-    with pytest.raises(SystemExit) as ei:
-        main(["info", str(p)])
-    assert ei.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: ") and str(p) in err[0] and "/scan message 1" in err[0]
-    assert set(tmp_path.iterdir()) == before
+    for name, p, extra, what in _bad_logs(tmp_path):
+        before = set(tmp_path.iterdir())
+        with pytest.raises(SystemExit) as ei:
+            main(["info", str(p), *extra])
+        assert ei.value.code == 2, name
+        cap = capsys.readouterr()
+        err = cap.err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and str(p) in err[0] and what in err[0], (name, err)
+        assert "scans:" not in cap.out, name
+        assert set(tmp_path.iterdir()) == before, name
 
 
 def test_cli_info_prints_scans(tmp_path, capsys):
