@@ -272,6 +272,18 @@ def test_block_path_equals_line_parser(tmp_path, monkeypatch, block):
             np.testing.assert_array_equal(getattr(f, a), getattr(ref, a), err_msg=a)
 
 
+def test_float_cache_is_bounded_and_exact():
+    """The range-token cache returns exactly float(token) and never holds more than its limit."""
+    from slam.logs.carmen import _FloatCache
+
+    c = _FloatCache(limit=4)
+    toks = [f"{v:.2f}".encode() for v in np.random.default_rng(9).uniform(0, 80, 50)]
+    assert [c[t] for t in toks] == [float(t) for t in toks]
+    assert len(c) <= 4
+    with pytest.raises(ValueError):
+        c[b"two"]
+
+
 def test_topic_choice(tmp_path):
     """Default topic is the front laser; RLASER/rear selects the rear one; ROBOTLASER1 when alone."""
     lines = [flaser([1.0, 2.0], stamp=1.0), flaser([3.0, 4.0, 5.0], stamp=1.5, tag="RLASER"), flaser([1.0, 2.0], stamp=2.0)]

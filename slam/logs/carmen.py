@@ -30,8 +30,8 @@ and line.
 Reading is streaming with constant memory: the file is decompressed in blocks of about 1 MiB
 by a background thread (bz2/zlib release the GIL, so decompression overlaps parsing), each
 block is split into lines in bulk, and all FLASER/RLASER numbers of a block are converted and
-checked as one ``(scans, beams)`` array (one ``np.array(tokens, float)`` call per block; no
-per-beam Python loop). ROBOTLASER lines, and blocks with irregular or bad lines, are parsed line
+checked as one ``(scans, beams)`` array (each distinct range token is converted once, through
+a bounded cache; no per-beam Python loop). ROBOTLASER lines, and blocks with irregular or bad lines, are parsed line
 by line, which also yields the precise error message.
 """
 
@@ -257,8 +257,25 @@ def _to_frames(
     return out
 
 
+class _FloatCache(dict):
+    """``token → float(token)``, filled on demand and emptied when it grows past *limit* entries
+    (so memory stays bounded whatever the log)."""
+
+    def __init__(self, limit: int = 1 << 16) -> None:
+        super().__init__()
+        self.limit = limit
+
+    def __missing__(self, key: bytes) -> float:
+        v = float(key)
+        if len(self) >= self.limit:
+            self.clear()
+        self[key] = v
+        return v
+
+
 def _flaser_block(
     rows: list[list[bytes]], linenos: list[int], *, path: str, name: str, first_index: int, max_range: float,
+    cache: _FloatCache,
 ) -> tuple[list[Frame], "_LineError | None"]:
     """Frames of a block's FLASER/RLASER lines (the hot path), and the error of the first bad line.
 
@@ -276,12 +293,18 @@ def _flaser_block(
     if n >= 1 and all(len(r) == nt for r in rows):
         nb = str(n).encode()
         if all(r[1] == nb for r in rows):
-            flat: list[bytes] = []
+            rtoks: list[bytes] = []
+            other: list[bytes] = []
             for r in rows:
-                flat += r[2:n + 8]
-                flat.append(r[-3])
+                rtoks += r[2:n + 2]
+                other += r[n + 2:n + 8]
+                other.append(r[-3])
             try:
-                vals = np.array(flat, dtype=np.float64).reshape(m, n + 7)
+                # Ranges repeat (a few thousand distinct tokens in a log): converting each distinct
+                # token once through the cache is ~3× faster than np.array on all of them, and
+                # float() is exactly the conversion np.array applies to bytes.
+                R = np.fromiter(map(cache.__getitem__, rtoks), np.float64, m * n).reshape(m, n)
+                vals = np.concatenate([R, np.array(other, dtype=np.float64).reshape(m, 7)], axis=1)
             except _NUMERIC_ERRORS:
                 vals = None
     if vals is None:  # irregular or malformed block: line by line
@@ -615,6 +638,7 @@ class CarmenReader(LogReader):
         # FLASER/RLASER take the block-vectorised path; ROBOTLASER* lines are parsed one by one
         # (a user max range applies to both kinds, see flaser_max_range()).
         fast = topic in ("FLASER", "RLASER")
+        cache = _FloatCache()
         index = 0
         last = 0
         n_topic = 0
@@ -661,7 +685,7 @@ class CarmenReader(LogReader):
                 lasers, rows, linenos = lasers[:keep], rows[:keep], linenos[:keep]
             if fast:
                 frames, laser_error = _flaser_block(rows, linenos, path=path, name=name, first_index=index,
-                                                    max_range=fl_max)
+                                                    max_range=fl_max, cache=cache)
                 if laser_error is not None:
                     error = laser_error
             else:
