@@ -230,6 +230,24 @@ def test_odometry_interpolation_is_exact_on_constant_twist(tmp_path, rng):
         np.testing.assert_allclose(f.odom, T0 @ geo.se3_exp((f.stamp - t0) * xi), atol=1e-9)
         assert abs(f.odom[2, 3]) < 1e-12
 
+    # Scans logged 0.3 s after their header stamp (driver latency): odometry with later stamps is
+    # already in the stream, and the interpolation must still bracket each scan's stamp.
+    p2 = tmp_path / "late.mcap"
+    with McapLogWriter(p2) as w:
+        for k in range(42):
+            t = t0 + 0.1 * k
+            w.write_odometry("/odom", t, "odom", "base_link", T0 @ geo.se3_exp((t - t0) * xi))
+        for t in scan_t:
+            sec, nsec = stamp_to_time(t)
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id="base_link")
+            msg = T[LASER_SCAN](header=hdr, angle_min=-1.0, angle_max=1.0, angle_increment=0.1, time_increment=0.0, scan_time=0.0,
+                                range_min=0.1, range_max=5.0, ranges=np.full(21, 2.0, np.float32), intensities=np.zeros(0, np.float32))
+            w.write_message("/scan", LASER_SCAN, msg, t + 0.3)
+    late = list(open_log(p2).frames())
+    assert len(late) == 40
+    for f in late:
+        np.testing.assert_allclose(f.odom, T0 @ geo.se3_exp((f.stamp - t0) * xi), atol=1e-9)
+
 
 def test_memory_does_not_grow_with_log_length(tmp_path):
     """Streaming: the peak memory allocated while iterating the frames of a 1500-scan log (with

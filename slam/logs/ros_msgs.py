@@ -608,6 +608,7 @@ class RosLogReader(LogReader):
     """
 
     max_pending = 256
+    trim_margin = 1.0  # s of pose samples kept before the oldest waiting scan
 
     def __init__(
         self,
@@ -803,10 +804,12 @@ class RosLogReader(LogReader):
                     batch.append(pending.popleft())
                 if len(batch) >= batch_size:
                     yield from flush()
-                oldest = batch[0][3] if batch else (pending[0][3] if pending else None)
+                # Keep trim_margin seconds of pose history before the oldest waiting scan (or the
+                # newest sample): scans may be logged after odometry with later stamps.
+                oldest = batch[0][3] if batch else (pending[0][3] if pending else math.inf)
                 for track in (odom, gt):
                     if track is not None and track.stamps:
-                        track.trim(track.latest if oldest is None else min(oldest, track.latest))
+                        track.trim(min(oldest, track.latest) - self.trim_margin)
             batch.extend(pending)
             pending.clear()
             if batch:
