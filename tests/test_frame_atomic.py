@@ -69,3 +69,16 @@ def test_atomic_directory(tmp_path):
         (d / "sub" / "y.txt").write_text("2")
     assert (out / "x.txt").read_text() == "1" and (out / "sub" / "y.txt").read_text() == "2"
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+def test_atomic_output_has_umask_permissions(tmp_path):
+    """Atomic files get the permissions of an ordinary open() (0666 & ~umask), not mkstemp's 0600."""
+    import os
+
+    mask = os.umask(0o022)
+    try:
+        with atomic_open(tmp_path / "f.txt") as fh:
+            fh.write("x")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o644
