@@ -325,6 +325,9 @@ def pointcloud2_structured(msg: Any, names: Sequence[str] | None = None) -> np.n
 def decode_pointcloud2(msg: Any) -> Array:
     """Vectorised PointCloud2 → ``(N, 3)`` float64 x, y, z (sensor frame, m); non-finite points dropped.
 
+    Layout per ``sensor_msgs/msg/PointCloud2`` + ``PointField`` (ROS 2 common_interfaces): point
+    *i* of row *r* starts at byte ``r·row_step + i·point_step``; each field at its ``offset``.
+
     Works for any field order, padding, per-field datatype (int8 … float64), big or little
     endian, padded rows and organised (height > 1) clouds; no per-point Python loop — the data
     buffer is viewed through a numpy structured dtype and the three columns are copied out.
@@ -453,7 +456,8 @@ class PoseTrack:
 
 
 class TfBuffer:
-    """Static and dynamic transforms of a tf2 tree (each child has one parent).
+    """Static and dynamic transforms of a tf2 tree (each child has one parent; Foote 2013, "tf: The
+    transform library", TePRA — lookups compose the edges through the common ancestor).
 
     Dynamic edges keep the last ``history`` samples and are interpolated at the query stamp
     (held at the ends); static edges are fixed. Frame ids are compared without a leading ``/``.
