@@ -284,6 +284,23 @@ def test_float_cache_is_bounded_and_exact():
         c[b"two"]
 
 
+def test_abandoned_stream_stops_its_thread():
+    """Stopping early (close, or dropping the iterator) ends the background decompression thread."""
+    import gc
+    import threading
+
+    before = threading.active_count()
+    for _ in range(5):
+        it = iter(CarmenReader(CSAIL).frames())
+        next(it)
+        del it
+    it = CarmenReader(CSAIL).frames()
+    next(it)
+    it.close()
+    gc.collect()
+    assert threading.active_count() == before
+
+
 def test_topic_choice(tmp_path):
     """Default topic is the front laser; RLASER/rear selects the rear one; ROBOTLASER1 when alone."""
     lines = [flaser([1.0, 2.0], stamp=1.0), flaser([3.0, 4.0, 5.0], stamp=1.5, tag="RLASER"), flaser([1.0, 2.0], stamp=2.0)]
