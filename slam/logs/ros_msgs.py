@@ -394,13 +394,15 @@ class PoseTrack:
         self.vecs.insert(i, np.asarray(vec, dtype=float))
         self.mats.insert(i, None)
 
-    def _matrices(self) -> Array:
-        todo = [i for i, m in enumerate(self.mats) if m is None]
+    def _matrices(self, idx: Iterable[int]) -> dict[int, Array]:
+        """4×4 poses of the samples *idx*, converting the ones not converted yet in one call."""
+        idx = sorted(set(int(k) for k in idx))
+        todo = [k for k in idx if self.mats[k] is None]
         if todo:
-            conv = vecs_to_matrices(np.stack([self.vecs[i] for i in todo]))
-            for k, i in enumerate(todo):
-                self.mats[i] = conv[k]
-        return np.stack(self.mats)  # type: ignore[arg-type]
+            conv = vecs_to_matrices(np.stack([self.vecs[k] for k in todo]))
+            for c, k in enumerate(todo):
+                self.mats[k] = conv[c]
+        return {k: self.mats[k] for k in idx}  # type: ignore[misc]
 
     def query_many(self, ts: ArrayLike) -> list[Array | None]:
         """Poses at the stamps *ts*: interpolated between the bracketing samples, the end sample
@@ -409,30 +411,28 @@ class PoseTrack:
         if not self.stamps:
             return [None] * len(ts)
         S = np.asarray(self.stamps)
-        M = self._matrices()
         n = len(S)
         i = np.searchsorted(S, ts, side="left")
         ic = np.minimum(i, n - 1)
         exact = S[ic] == ts
-        before = (i == 0) & ~exact
-        after = i == n
-        inner = ~(exact | before | after)
+        before = (i == 0) & ~exact & (S[0] - ts <= self.max_gap)
+        after = (i == n) & (ts - S[-1] <= self.max_gap)
+        inner = (i > 0) & (i < n) & ~exact
+        i1 = i[inner]
+        i0 = i1 - 1
+        M = self._matrices([*ic[exact], *i0, *i1, *([0] if before.any() else []), *([n - 1] if after.any() else [])])
         out: list[Array | None] = [None] * len(ts)
         if inner.any():
-            i1 = i[inner]
-            i0 = i1 - 1
             alpha = (ts[inner] - S[i0]) / (S[i1] - S[i0])
-            P = interpolate_pose(M[i0], M[i1], alpha)
+            P = interpolate_pose(np.stack([M[k] for k in i0]), np.stack([M[k] for k in i1]), alpha)
             for k, j in enumerate(np.flatnonzero(inner)):
                 out[j] = P[k]
         for j in np.flatnonzero(exact):
-            out[j] = M[ic[j]].copy()
+            out[j] = M[int(ic[j])].copy()
         for j in np.flatnonzero(before):
-            if S[0] - ts[j] <= self.max_gap:
-                out[j] = M[0].copy()
+            out[j] = M[0].copy()
         for j in np.flatnonzero(after):
-            if ts[j] - S[-1] <= self.max_gap:
-                out[j] = M[-1].copy()
+            out[j] = M[n - 1].copy()
         return out
 
     def query(self, t: float) -> Array | None:
