@@ -91,3 +91,17 @@ def beam_samples(frame: Frame, free_step: float, stop_before: float = 1.5, beam_
     nfree = np.maximum(0, np.floor(limit / free_step + 1e-9)).astype(np.int64)
     inner = nfree * free_step
     return BeamSamples(a, hit, outer, inner.astype(float), nfree, float(free_step))
+
+
+def clip_range(frame: Frame, max_range: float) -> Frame:
+    """A copy of a 2D scan whose returns beyond *max_range* (m) count as no return at that range."""
+    if frame.ranges is None:
+        return frame
+    from dataclasses import replace
+
+    far = min(max_range, frame.max_range)
+    with np.errstate(invalid="ignore"):
+        nr = frame.no_return | (frame.ranges > far)
+        keep = ~nr & np.isfinite(frame.ranges)
+    pts = np.column_stack([frame.ranges[keep] * np.cos(frame.angles[keep]), frame.ranges[keep] * np.sin(frame.angles[keep])])
+    return replace(frame, no_return=nr, max_range=far, points=pts)

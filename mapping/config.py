@@ -17,7 +17,7 @@ class GPConfig(BaseModel):
     sigma_f: float = 8.13
     sigma_n: float = 0.226
     #: at most this many training samples (evenly strided) enter the marginal-likelihood fit
-    fit_max_points: int = 700
+    fit_max_points: int = 400
     fit_restarts: int = 1
 
 

@@ -122,8 +122,7 @@ def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float],
     data = np.ma.masked_array(img, mask=None if mask is None else ~mask)
     h, w = img.shape
     fig, ax = plt.subplots(figsize=(7, 7 * h / max(w, 1) + 0.5), dpi=120)
-    cm = plt.get_cmap(cmap).copy()
-    cm.set_bad("#b0b0b0")
+    cm = plt.get_cmap(cmap).with_extremes(bad="#b0b0b0")
     im = ax.imshow(data, origin="lower", extent=extent, cmap=cm, vmin=vmin, vmax=vmax, interpolation="nearest")
     fig.colorbar(im, ax=ax, label=label, shrink=0.8)
     ax.set_xlabel("x [m]")

@@ -49,3 +49,19 @@ def map_roc(probability: Array, gt_classes: NDArray[np.int8]) -> tuple[Array, Ar
     keep = (g != -1) & np.isfinite(p)
     fpr, tpr, _ = roc_curve(p[keep], g[keep] >= 50)
     return fpr, tpr, float(np.trapezoid(tpr, fpr))
+
+
+def resample_to_grid(probability: Array, observed: NDArray[np.bool_], origin: Array, resolution: float,
+                     target_shape: tuple[int, int], target_origin: Array, target_resolution: float) -> Array:
+    """Probability at the centres of another (axis-aligned) grid by nearest cell; 0.5 outside / unobserved."""
+    ty = target_origin[1] + (np.arange(target_shape[0]) + 0.5) * target_resolution
+    tx = target_origin[0] + (np.arange(target_shape[1]) + 0.5) * target_resolution
+    iy = np.floor((ty - origin[1]) / resolution).astype(np.int64)
+    ix = np.floor((tx - origin[0]) / resolution).astype(np.int64)
+    h, w = probability.shape
+    oky, okx = (iy >= 0) & (iy < h), (ix >= 0) & (ix < w)
+    out = np.full(target_shape, 0.5)
+    sub = np.ix_(np.flatnonzero(oky), np.flatnonzero(okx))
+    src = np.ix_(iy[oky], ix[okx])
+    out[sub] = np.where(observed[src], probability[src], 0.5)
+    return out

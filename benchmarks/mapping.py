@@ -1,0 +1,230 @@
+"""Mapping benchmark: classic GPOM vs Fast-GPOM vs log-odds on the Fast-GPOM paper's three STDR worlds.
+
+Usage: ``.venv/bin/python benchmarks/mapping.py [--scans 6000] [--every 60] [--out result.json]``
+
+For each world (sparse_obstacles at 0.02 m with the Fast-GPOM fork's origin, simple_rooms at 0.05 m,
+robocup at 0.03 m; read from ../shared/data/stdr_maps, GPL, never copied) the simulator drives one
+coverage tour with the paper's laser preset (667 beams over 240°, 0.06–4.09 m) and fixed seeds; every
+``--every``-th scan, with its ground-truth pose, is fed to all three mappers in this one process.
+Reported per world and method: median / p95 per-scan update time (wall clock and this thread's CPU
+time — the machine is shared, so both are given), total time, hyperparameter-fit time, and the AUC
+of the map against the ground truth (cells unknown in the ground truth ignored; never-observed
+cells score p = 0.5), plus the AUC over observed cells only and the coverage. On simple_rooms the
+Fast-GPOM run is repeated with one exact GP per scan (no locality) to measure what locality costs.
+Finally 100 submaps are built and all anchors moved to time the recomposition.
+
+BLAS is pinned to one thread: batched small inversions under multi-threaded OpenBLAS on a loaded
+2-core machine ran ~30× slower (measured while developing).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from evaluation.sim import LASER_PRESETS, load_world  # noqa: E402
+from evaluation.sim.simulate import simulate  # noqa: E402
+from mapping.config import MappingConfig  # noqa: E402
+from mapping.fastgpom import FastGPOM, ring_training_set  # noqa: E402
+from mapping.beams import beam_samples  # noqa: E402
+from mapping.gaussian_grid import initial_hyperparameters  # noqa: E402
+from mapping.gpom import ClassicGPOM  # noqa: E402
+from mapping.grid import GridGeometry  # noqa: E402
+from mapping.logodds import LogOddsGrid  # noqa: E402
+from mapping.roc import map_roc  # noqa: E402
+from mapping.submaps import SubmapFuser  # noqa: E402
+from registration.geometry import xytheta_to_matrix  # noqa: E402
+
+STDR = REPO.parent / "shared" / "data" / "stdr_maps"
+WORLDS = (  # name, yaml, resolution (m), simulation seed
+    ("sparse_obstacles", "sparse_obstacles.kuanghaofei_fork.yaml", 0.02, 11),
+    ("simple_rooms", "simple_rooms.yaml", 0.05, 12),
+    ("robocup", "robocup.yaml", 0.03, 13),
+)
+PAPER_AUC = {"sparse_obstacles": 0.93, "simple_rooms": 0.93, "robocup": 0.87}
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run_mapper(mapper, frames) -> dict:
+    wall, cpu = [], []
+    for f in frames:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        mapper.update(f, f.ground_truth)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.thread_time() - c0)
+    w, c = np.array(wall) * 1e3, np.array(cpu) * 1e3
+    return {"median_ms": float(np.median(w)), "p95_ms": float(np.percentile(w, 95)), "total_s": float(w.sum() / 1e3),
+            "cpu_median_ms": float(np.median(c)), "cpu_p95_ms": float(np.percentile(c, 95)),
+            "cpu_total_s": float(c.sum() / 1e3)}
+
+
+def score(m, gt) -> dict:
+    _, _, auc = map_roc(m.probability, gt)
+    known = gt != -1
+    obs = m.observed & known
+    _, _, auc_obs = map_roc(np.where(obs, m.probability, np.nan), gt)
+    return {"auc": float(auc), "auc_observed_cells": float(auc_obs), "coverage": float(obs.sum() / known.sum())}
+
+
+def fit_time(cfg: MappingConfig, X, y):
+    t0 = time.perf_counter()
+    hyp = initial_hyperparameters(cfg.gp, X, y)
+    return hyp, time.perf_counter() - t0
+
+
+def bench_world(name: str, yaml: str, res: float, seed: int, n_scans: int, every: int, exact: bool) -> tuple[dict, list]:
+    world = load_world(STDR / yaml, res)
+    t0 = time.perf_counter()
+    slog = simulate(world, n_scans=n_scans, spec=LASER_PRESETS["fastgpom"], seed=seed)
+    frames = list(slog.frames())[::every]
+    log(f"{name}: simulated {n_scans} scans in {time.perf_counter() - t0:.1f} s, mapping {len(frames)}")
+    geom = GridGeometry((float(world.origin_xy[0]), float(world.origin_xy[1])), world.resolution, world.shape)
+    gt = world.classes()
+    cfg = MappingConfig(resolution=res)
+    out: dict = {"resolution": res, "grid": list(world.shape), "scans_simulated": n_scans, "scans_mapped": len(frames),
+                 "seed": seed, "paper_auc_fastgpom": PAPER_AUC[name]}
+    # hyperparameters: LML fit on the first frame (Yuan et al. §IV), timed separately
+    f0 = frames[0]
+    fast_hyp, t_fast = fit_time(cfg, *ring_training_set(beam_samples(f0, res, cfg.fastgpom.stop_before_hit),
+                                                         cfg.fastgpom.train_beam_stride)[:2])
+    X, y, _ = ClassicGPOM(geom, cfg).training_set(f0)
+    gpom_hyp, t_gpom = fit_time(cfg, X, y)
+    mappers = {
+        "fastgpom": (FastGPOM(geom, cfg, fast_hyp), fast_hyp, t_fast),
+        "gpom": (ClassicGPOM(geom, cfg, gpom_hyp), gpom_hyp, t_gpom),
+        "logodds": (LogOddsGrid(geom, cfg), None, 0.0),
+    }
+    if exact:
+        cx = cfg.model_copy(deep=True)
+        cx.fastgpom.exact_gp = True
+        mappers["fastgpom_exact_gp"] = (FastGPOM(geom, cx, fast_hyp), fast_hyp, t_fast)
+    maps = {}
+    for key, (mapper, hyp, tfit) in mappers.items():
+        r = run_mapper(mapper, frames)
+        m = mapper.to_map()
+        maps[key] = m
+        r.update(score(m, gt))
+        if hyp is not None:
+            r["hyperparameter_fit_s"] = tfit
+            r["hyperparameters"] = {"nu": hyp.nu, "length_scale": hyp.length_scale, "sigma_f": hyp.sigma_f,
+                                    "sigma_n": hyp.sigma_n}
+        out[key] = r
+        log(f"  {key}: median {r['median_ms']:.2f} ms (cpu {r['cpu_median_ms']:.2f}) total {r['total_s']:.1f} s "
+            f"auc {r['auc']:.4f} (observed {r['auc_observed_cells']:.4f}, coverage {r['coverage']:.3f})")
+    out["speedup_fastgpom_vs_gpom"] = out["gpom"]["total_s"] / out["fastgpom"]["total_s"]
+    out["speedup_fastgpom_vs_gpom_cpu"] = out["gpom"]["cpu_total_s"] / out["fastgpom"]["cpu_total_s"]
+    if exact:
+        a, b = maps["fastgpom"], maps["fastgpom_exact_gp"]
+        both = a.observed & b.observed
+        out["locality"] = {
+            "auc_block_minus_exact": out["fastgpom"]["auc"] - out["fastgpom_exact_gp"]["auc"],
+            "max_abs_probability_difference": float(np.abs(a.probability - b.probability)[both].max()),
+            "mean_abs_probability_difference": float(np.abs(a.probability - b.probability)[both].mean()),
+            "class_agreement": float(np.mean((a.probability[both] > 0.5) == (b.probability[both] > 0.5))),
+            "per_scan_speedup": out["fastgpom_exact_gp"]["median_ms"] / out["fastgpom"]["median_ms"],
+        }
+    return out, frames
+
+
+def bench_recompose(frames, res: float, n_submaps: int = 100, seed: int = 5) -> dict:
+    """100 submaps (one keyframe scan each) on a shared world grid; time moving every anchor."""
+    poses = np.array([f.ground_truth for f in frames])
+    xy = poses[:, :2, 3]
+    geom = GridGeometry.covering(xy.min(0), xy.max(0), res, margin=6.0)
+    fuser = SubmapFuser(geom, MappingConfig(resolution=res), submap_half_size=5.0)
+    reps = (n_submaps + len(frames) - 1) // len(frames)
+    k = 0
+    for _ in range(reps):
+        for f in frames:
+            if k == n_submaps:
+                break
+            fuser.add_submap(k, f.ground_truth)
+            fuser.add_scan(k, f, f.ground_truth)
+            k += 1
+    t0 = time.perf_counter()
+    fuser.to_map()
+    first = time.perf_counter() - t0
+    rng = np.random.default_rng(seed)
+    anchors = {key: xytheta_to_matrix(*rng.normal(0.0, [0.05, 0.05, 0.01])) @ sm.world_T_anchor
+               for key, sm in fuser.submaps.items()}
+    t0, c0 = time.perf_counter(), time.thread_time()
+    moved = fuser.update_poses(anchors)
+    m = fuser.to_map()
+    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    return {"submaps": len(fuser.submaps), "moved": moved, "recompose_s": wall, "recompose_cpu_s": cpu,
+            "initial_placement_s": first, "grid": list(geom.shape), "observed_cells": int(m.observed.sum())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans", type=int, default=6000, help="scans simulated per world (one coverage tour)")
+    ap.add_argument("--every", type=int, default=60, help="map every n-th scan")
+    ap.add_argument("--worlds", default=",".join(w[0] for w in WORLDS))
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    t_all = time.perf_counter()
+    result: dict = {"benchmark": "mapping", "laser": "fastgpom (667 beams, 240°, 0.06–4.09 m)",
+                    "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"), "load_avg_start": list(os.getloadavg()),
+                    "worlds": {}}
+    frames_005 = None
+    for name, yaml, res, seed in WORLDS:
+        if name not in args.worlds.split(","):
+            continue
+        r, frames = bench_world(name, yaml, res, seed, args.scans, args.every, exact=(res == 0.05))
+        result["worlds"][name] = r
+        if res == 0.05:
+            frames_005 = frames
+    if frames_005 is not None:
+        result["recompose"] = bench_recompose(frames_005, 0.05)
+        log(f"recompose: {result['recompose']}")
+    W = result["worlds"]
+    summary = {
+        "fastgpom_auc": {k: v["fastgpom"]["auc"] for k, v in W.items()},
+        "gpom_auc": {k: v["gpom"]["auc"] for k, v in W.items()},
+        "logodds_auc": {k: v["logodds"]["auc"] for k, v in W.items()},
+        "fastgpom_median_ms_at_005": W["simple_rooms"]["fastgpom"]["median_ms"] if "simple_rooms" in W else None,
+        "fastgpom_cpu_median_ms_at_005": W["simple_rooms"]["fastgpom"]["cpu_median_ms"] if "simple_rooms" in W else None,
+        # the smallest per-world ratio of total update times (conservative)
+        "speedup_fastgpom_vs_gpom": min(v["speedup_fastgpom_vs_gpom"] for v in W.values()),
+        "speedup_fastgpom_vs_gpom_per_world": {k: v["speedup_fastgpom_vs_gpom"] for k, v in W.items()},
+        "recompose_100_submaps_s": result.get("recompose", {}).get("recompose_s"),
+    }
+    fa, ga = summary["fastgpom_auc"], summary["gpom_auc"]
+    summary["targets"] = {
+        "fastgpom_auc_ge_0.95": all(a >= 0.95 for a in fa.values()),
+        "fastgpom_auc_not_below_gpom_by_0.01": all(fa[k] >= ga[k] - 0.01 for k in fa),
+        "fastgpom_median_le_5ms_at_005": summary["fastgpom_median_ms_at_005"] is not None
+        and summary["fastgpom_median_ms_at_005"] <= 5.0,
+        "speedup_ge_20": summary["speedup_fastgpom_vs_gpom"] >= 20.0,
+        "recompose_le_0.5s": summary["recompose_100_submaps_s"] is not None and summary["recompose_100_submaps_s"] <= 0.5,
+    }
+    result["summary"] = summary
+    result["load_avg_end"] = list(os.getloadavg())
+    result["total_s"] = time.perf_counter() - t_all
+    text = json.dumps(result, indent=2)
+    if args.out:
+        from registration.atomic import atomic_open
+
+        with atomic_open(args.out) as fh:
+            fh.write(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,170 @@
+"""Map export round trips (map_server yaml/pgm, npz, MCAP OccupancyGrid), ROC/AUC, BCM and the CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapping.bcm import add_estimate, fuse, mean_variance, probit_squash
+from mapping.grid import GridGeometry
+from mapping.occupancy_map import OccupancyMap, export_map, load_npz, write_occupancy_grid
+from mapping.roc import map_roc, resample_to_grid, roc_auc, roc_curve
+
+
+def _random_map(rng, shape=(37, 53)):
+    g = GridGeometry((-1.3, 2.05), 0.05, shape)
+    mean = rng.normal(0, 1, shape)
+    var = rng.uniform(0.01, 2, shape)
+    obs = rng.random(shape) > 0.2
+    return OccupancyMap(g, probit_squash(mean, var), mean, var, obs, "fastgpom")
+
+
+def test_map_server_round_trip(tmp_path, rng):
+    """map.yaml + map.pgm load back (mapping.mapserver) to exactly the exported occupancy classes and geometry."""
+    from mapping.mapserver import read_map_server
+
+    m = _random_map(rng)
+    export_map(m, tmp_path, images=False)
+    back = read_map_server(tmp_path / "map.yaml")
+    np.testing.assert_array_equal(back.classes, m.classes())
+    assert back.resolution == pytest.approx(m.resolution)
+    np.testing.assert_allclose(back.origin[:2], m.origin)
+
+
+def test_npz_round_trip_and_images(tmp_path, rng):
+    """map.npz restores every array bit-exactly; map.png and variance.png are written as PNG files."""
+    m = _random_map(rng)
+    files = export_map(m, tmp_path)
+    b = load_npz(tmp_path / "map.npz")
+    for k in ("probability", "mean", "variance", "observed"):
+        np.testing.assert_array_equal(getattr(b, k), getattr(m, k))
+    assert b.geometry == m.geometry and b.method == "fastgpom"
+    for name in ("map.png", "variance.png"):
+        assert (tmp_path / name) in files and (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bad_npz_names_file_and_key(tmp_path):
+    """A map.npz without 'probability' raises MapFormatError naming the file and the key."""
+    from registration.errors import MapFormatError
+
+    p = tmp_path / "bad.npz"
+    np.savez(p, observed=np.ones((2, 2), bool))
+    with pytest.raises(MapFormatError, match="bad.npz.*probability"):
+        load_npz(p)
+
+
+def test_occupancy_grid_mcap_decodes_with_rosbags(tmp_path, rng):
+    """The nav_msgs/OccupancyGrid written to MCAP decodes with rosbags to the same classes, size,
+    resolution and origin (row 0 = lowest y, as OccupancyGrid.data)."""
+    from mcap.reader import make_reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from slam.logs.mcap_writer import McapLogWriter
+
+    m = _random_map(rng)
+    path = tmp_path / "map.mcap"
+    with McapLogWriter(path) as w:
+        write_occupancy_grid(m, w, topic="/map", stamp=12.5)
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with open(path, "rb") as fh:
+        msgs = [(ch.topic, sc.name, msg.data) for sc, ch, msg in make_reader(fh).iter_messages()]
+    assert len(msgs) == 1 and msgs[0][0] == "/map" and msgs[0][1] == "nav_msgs/msg/OccupancyGrid"
+    grid = ts.deserialize_cdr(msgs[0][2], "nav_msgs/msg/OccupancyGrid")
+    assert (grid.info.width, grid.info.height) == (m.geometry.shape[1], m.geometry.shape[0])
+    assert grid.info.resolution == pytest.approx(m.resolution)
+    assert (grid.info.origin.position.x, grid.info.origin.position.y) == pytest.approx(tuple(m.origin))
+    np.testing.assert_array_equal(np.asarray(grid.data, np.int8).reshape(m.geometry.shape), m.classes())
+    assert grid.header.stamp.sec == 12 and grid.header.stamp.nanosec == 500_000_000
+
+
+def test_auc_matches_sklearn(rng):
+    """AUC and ROC points equal scikit-learn's roc_auc_score / roc_curve, including tied scores."""
+    from sklearn.metrics import roc_auc_score
+    from sklearn.metrics import roc_curve as sk_roc
+
+    y = rng.random(2000) < 0.3
+    s = np.round(rng.normal(y * 1.0, 1.0), 1)  # rounding creates ties
+    assert roc_auc(s, y) == pytest.approx(roc_auc_score(y, s), abs=1e-12)
+    fpr, tpr, _ = roc_curve(s, y)
+    f2, t2, _ = sk_roc(y, s, drop_intermediate=False)
+    np.testing.assert_allclose(fpr, f2)
+    np.testing.assert_allclose(tpr, t2)
+
+
+def test_map_roc_ignores_unknown_and_perfect_map():
+    """A map equal to the ground truth has AUC 1, its inverse 0, and unknown ground-truth cells never count."""
+    gt = np.array([[100, 0, -1], [0, 100, -1]], np.int8)
+    p = np.array([[0.9, 0.1, 0.99], [0.2, 0.8, 0.0]])
+    assert map_roc(p, gt)[2] == 1.0
+    assert map_roc(1 - p, gt)[2] == 0.0
+
+
+def test_resample_identity_and_shift():
+    """Resampling onto the same grid is the identity on observed cells; a grid shifted by whole cells
+    reads the shifted cells, and cells outside the map get 0.5."""
+    p = np.arange(12, dtype=float).reshape(3, 4) / 12
+    obs = np.ones((3, 4), bool)
+    np.testing.assert_array_equal(resample_to_grid(p, obs, np.array([0.0, 0.0]), 0.5, (3, 4), np.array([0.0, 0.0]), 0.5), p)
+    r = resample_to_grid(p, obs, np.array([0.0, 0.0]), 0.5, (3, 4), np.array([0.5, 0.0]), 0.5)
+    np.testing.assert_array_equal(r[:, :3], p[:, 1:])
+    assert np.all(r[:, 3] == 0.5)
+
+
+def test_bcm_fusion_identities(rng):
+    """BCM: fusing with an infinite-variance estimate changes nothing; fusing two equal estimates halves the
+    variance; information-form accumulation equals pairwise fusion; the squash is 0.5 at μ = 0 and
+    approaches Φ(μ/σ) for α → ∞."""
+    m1, v1 = rng.normal(size=50), rng.uniform(0.1, 2, 50)
+    m2, v2 = rng.normal(size=50), rng.uniform(0.1, 2, 50)
+    m, v = fuse(m1, v1, m2, np.full(50, np.inf))
+    np.testing.assert_allclose(m, m1)
+    np.testing.assert_allclose(v, v1)
+    m, v = fuse(m1, v1, m1, v1)
+    np.testing.assert_allclose(v, v1 / 2)
+    info, prec = np.zeros(50), np.zeros(50)
+    add_estimate(info, prec, m1, v1)
+    add_estimate(info, prec, m2, v2)
+    mi, vi = mean_variance(info, prec)
+    mf, vf = fuse(m1, v1, m2, v2)
+    np.testing.assert_allclose(mi, mf)
+    np.testing.assert_allclose(vi, vf)
+    assert np.all(probit_squash(np.zeros(5), np.ones(5)) == 0.5)
+    from scipy.stats import norm
+
+    np.testing.assert_allclose(probit_squash(m1, v1, alpha=1e6), norm.cdf(m1 / np.sqrt(v1)), atol=1e-6)
+
+
+def test_cli_map_and_eval(tmp_path):
+    """`slam map` on a simulated MCAP log writes every export file, and `slam eval map` prints `auc: X`
+    with the map agreeing with the simulator's ground truth on the observed cells (AUC > 0.9)."""
+    from typer.testing import CliRunner
+
+    from evaluation.sim import LASER_PRESETS, load_world
+    from evaluation.sim.simulate import simulate, write_simulated_log
+    from slam.cli import app
+
+    world = load_world("rooms", 0.05, seed=2)
+    sim = simulate(world, n_scans=40, spec=LASER_PRESETS["fastgpom"], seed=2)
+    log = tmp_path / "sim.mcap"
+    write_simulated_log(sim, log)
+    out = tmp_path / "out"
+    runner = CliRunner()
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("gp:\n  hyperparameters: fixed\n")
+    r = runner.invoke(app, ["map", str(log), "--out", str(out), "--every", "4", "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    for name in ("map.pgm", "map.yaml", "map.png", "variance.png", "map.npz", "map.mcap", "mapping_config.yaml"):
+        assert (out / name).exists(), name
+    gt_yaml = next(tmp_path.glob("*_map.yaml"))
+    r = runner.invoke(app, ["eval", "map", str(out / "map.npz"), str(gt_yaml), "--plot", str(tmp_path / "roc.png")])
+    assert r.exit_code == 0, r.output
+    auc = float(next(line for line in r.output.splitlines() if line.startswith("auc: ")).split()[1])
+    assert 0.0 <= auc <= 1.0
+    from mapping.mapserver import read_map_server
+
+    m = load_npz(out / "map.npz")
+    gt = read_map_server(gt_yaml)
+    p = resample_to_grid(m.probability, m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
+    o = resample_to_grid(m.observed.astype(float), np.ones_like(m.observed), m.origin, m.resolution, gt.shape,
+                         gt.origin[:2], gt.resolution)
+    assert map_roc(np.where(o == 1, p, np.nan), gt.classes)[2] > 0.9
