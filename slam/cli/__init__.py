@@ -22,6 +22,7 @@ COMMAND_MODULES = (
     "slam.cli.eval_cmd",
     "slam.cli.simulate_cmd",
     "slam.cli.solve_cmd",
+    "slam.cli.map_cmd",
 )
 
 app = typer.Typer(
