@@ -268,6 +268,33 @@ def test_memory_does_not_grow_with_log_length(tmp_path):
     assert peaks[1] < 1.25 * peaks[0] + 256 * 1024, peaks
 
 
+def test_odometry_from_tf_when_no_odometry_topic(tmp_path):
+    """Without an Odometry topic, Frame.odom comes from the TF edge odom → base_link (REP-105),
+    geodesically interpolated (exact on a constant twist), the static mount still gives
+    base_T_sensor, info reports odometry; odom_topic="" switches odometry off."""
+    p = tmp_path / "tfodom.mcap"
+    T0 = geo.xytheta_to_matrix(-1.0, 0.5, -0.2)
+    xi = np.array([0.5, 0.0, 0.0, 0.0, 0.0, -0.25])
+    mount = geo.xytheta_to_matrix(0.2, 0.0, 0.0)
+    t0 = 1.6e9
+    with McapLogWriter(p) as w:
+        w.write_tf(t0, [("base_link", "laser", mount)], static=True)
+        for k in range(61):
+            t = t0 + 0.05 * k
+            w.write_tf(t, [("odom", "base_link", T0 @ geo.se3_exp((t - t0) * xi))])
+            if k % 2 == 1 and k < 59:
+                w.write_scan("/scan", t + 0.013, "laser", -1.0, 0.1, 0.1, 5.0, np.full(21, 2.0, np.float32))
+    r = McapReader(p)
+    frames = list(r.frames())
+    assert len(frames) == 29
+    for f in frames:
+        np.testing.assert_allclose(f.odom, T0 @ geo.se3_exp((f.stamp - t0) * xi), atol=1e-9)
+        np.testing.assert_allclose(f.base_T_sensor, mount, atol=1e-12)
+    assert r.info().has_odometry
+    off = McapReader(p, odom_topic="")
+    assert all(f.odom is None for f in off.frames()) and not off.info().has_odometry
+
+
 def test_pose_track_holds_ends_and_refuses_far_queries():
     """Outside its samples the track holds the end pose within max_gap and returns None beyond."""
     tr = PoseTrack(max_gap=0.2)

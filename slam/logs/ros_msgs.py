@@ -404,10 +404,11 @@ class PoseTrack:
                 self.mats[k] = conv[c]
         return {k: self.mats[k] for k in idx}  # type: ignore[misc]
 
-    def query_many(self, ts: ArrayLike) -> list[Array | None]:
+    def query_many(self, ts: ArrayLike, max_gap: float | None = None) -> list[Array | None]:
         """Poses at the stamps *ts*: interpolated between the bracketing samples, the end sample
-        when a stamp is at most ``max_gap`` outside the buffer, else None."""
+        when a stamp is at most ``max_gap`` (default: the track's) outside the buffer, else None."""
         ts = np.atleast_1d(np.asarray(ts, dtype=float))
+        gap = self.max_gap if max_gap is None else max_gap
         if not self.stamps:
             return [None] * len(ts)
         S = np.asarray(self.stamps)
@@ -415,8 +416,8 @@ class PoseTrack:
         i = np.searchsorted(S, ts, side="left")
         ic = np.minimum(i, n - 1)
         exact = S[ic] == ts
-        before = (i == 0) & ~exact & (S[0] - ts <= self.max_gap)
-        after = (i == n) & (ts - S[-1] <= self.max_gap)
+        before = (i == 0) & ~exact & (S[0] - ts <= gap)
+        after = (i == n) & (ts - S[-1] <= gap)
         inner = (i > 0) & (i < n) & ~exact
         i1 = i[inner]
         i0 = i1 - 1
@@ -465,8 +466,9 @@ class TfBuffer:
     static sensor mount is not disturbed by the (dynamic) odometry edges above the base.
     """
 
-    def __init__(self, history: int = 200) -> None:
+    def __init__(self, history: int = 1000) -> None:
         self.parent: dict[str, str] = {}
+        self.latest_dynamic = -math.inf  # newest stamp of any dynamic transform (s)
         self.static: dict[str, Array] = {}
         self.dynamic: dict[str, PoseTrack] = {}
         self.history = history
@@ -496,6 +498,7 @@ class TfBuffer:
             v = np.concatenate([t, q])
         track = self.dynamic.setdefault(child, PoseTrack(max_gap=math.inf))
         track.add(stamp, v)
+        self.latest_dynamic = max(self.latest_dynamic, stamp)
         track.keep_last(self.history)
 
     def add_message(self, msg: Any, static: bool) -> None:
@@ -604,7 +607,8 @@ class RosLogReader(LogReader):
         topic: the sensor topic; default: the LaserScan topic with most messages, else the
             PointCloud2 topic with most messages.
         odom_topic: a ``nav_msgs/Odometry`` topic; default ``/odom`` or the Odometry topic with
-            most messages (ground-truth-named topics excluded). ``""`` disables odometry.
+            most messages (ground-truth-named topics excluded) and, when the log has none, the
+            TF edge ``odom → base`` (REP-105). ``""`` disables odometry.
         ground_truth_topic: an Odometry or PoseStamped topic; default a topic named
             ``ground_truth`` / ``groundtruth`` / ``gt`` / ``base_pose_ground_truth``.
         max_gap: odometry/ground truth is held (not extrapolated) up to this many seconds
@@ -719,8 +723,32 @@ class RosLogReader(LogReader):
         finally:
             it.close()  # type: ignore[attr-defined]
 
+    def _tf_odometry_child(self, tf_topics: Sequence[str], probe: int = 200) -> str | None:
+        """The child of a dynamic ``odom → base`` transform among the first *probe* /tf messages
+        (REP-105: the odometry frame is ``odom``), or None."""
+        for name in tf_topics:
+            it = self._raw_messages({name})
+            try:
+                for k, raw in enumerate(it):
+                    if k >= probe:
+                        break
+                    for ts in self._decode(raw).transforms:
+                        if strip_frame(ts.header.frame_id) == "odom":
+                            return strip_frame(ts.child_frame_id)
+            finally:
+                it.close()  # type: ignore[attr-defined]
+        return None
+
     def _base_candidates(self, odom_child: str | None) -> list[str]:
         return ([odom_child] if odom_child else []) + [b for b in BASE_FRAMES if b != odom_child]
+
+    def _tf_odometry(self, tf: TfBuffer, child: str, stamps: Sequence[float]) -> list[Array | None]:
+        """``odom_T_child`` at *stamps* from TF, interpolated; None farther than ``max_gap`` outside
+        the samples of a direct odom → child edge, or when TF does not connect the two frames."""
+        track = tf.dynamic.get(child) if tf.parent.get(child) == "odom" else None
+        if track is not None:
+            return track.query_many(stamps, max_gap=self.max_gap)
+        return [tf.lookup("odom", child, t) for t in stamps]
 
     def _base_T_sensor(self, tf: TfBuffer, odom_child: str | None, sensor: str, stamp: float) -> Array:
         """``base_T_sensor`` from TF: base = the odometry child frame, else base_link / base_footprint;
@@ -759,6 +787,12 @@ class RosLogReader(LogReader):
                     b == sensor0 or (b in tf and sensor0 in tf and tf.lookup(b, sensor0, 0.0) is not None)
                     for b in self._base_candidates(odom_child)
                 )
+            # No Odometry topic: take odometry from the TF edge odom → base when the log has one.
+            tf_odom: str | None = None
+            if choice.odom is None and self.odom_topic is None and choice.tf:
+                tf_odom = self._tf_odometry_child(choice.tf)
+                if tf_odom is not None:
+                    odom_child, need_tf = tf_odom, True
             wanted = {choice.sensor.name, *choice.tf_static}
             if need_tf:
                 wanted.update(choice.tf)
@@ -773,9 +807,11 @@ class RosLogReader(LogReader):
                 stamps = [b[3] for b in batch]
                 od = odom.query_many(stamps) if odom is not None else [None] * len(batch)
                 gp = gt.query_many(stamps) if gt is not None else [None] * len(batch)
+                if tf_odom is not None:
+                    od = self._tf_odometry(tf, tf_odom, stamps)
                 for (raw, msg, k, t, sframe), o, g in zip(batch, od, gp):
                     extra: dict[str, Any] = {"base_T_sensor": self._base_T_sensor(tf, odom_child, sframe, t)}
-                    if odom is not None:
+                    if odom is not None or tf_odom is not None:
                         extra["odom"] = o
                     if gt is not None:
                         extra["ground_truth"] = g
@@ -783,7 +819,11 @@ class RosLogReader(LogReader):
                 batch.clear()
 
             def ready(t: float) -> bool:
-                return (odom is None or odom.latest >= t) and (gt is None or gt.latest >= t)
+                return (
+                    (odom is None or odom.latest >= t)
+                    and (gt is None or gt.latest >= t)
+                    and (tf_odom is None or tf.latest_dynamic >= t)
+                )
 
             scan_index = 0
             for raw in self._raw_messages(wanted):
@@ -856,7 +896,8 @@ class RosLogReader(LogReader):
             dimension=dim,
             start=start,
             end=end,
-            has_odometry=choice.odom is not None,
+            has_odometry=choice.odom is not None
+            or (self.odom_topic is None and bool(choice.tf) and self._tf_odometry_child(choice.tf) is not None),
             has_ground_truth=choice.ground_truth is not None,
             topics=self.topics(),
         )
