@@ -4,7 +4,7 @@ What lives here:
 
 * the rosbags typestores (ROS 2 Humble for writing; per-file stores built from the message
   definitions carried in the log for reading, so that files written by others decode too);
-* exact stamp conversion float seconds ↔ ``builtin_interfaces/Time`` (sec, nanosec);
+* stamp conversion float seconds ↔ ``builtin_interfaces/Time`` (sec, nanosec) to the nanosecond;
 * message → pose / :class:`~registration.frame.Frame` conversion (LaserScan, PointCloud2,
   Odometry, PoseStamped, TFMessage);
 * a vectorised PointCloud2 decoder for any field layout;
@@ -366,8 +366,8 @@ def cloud_to_frame(msg: Any, path: Path | str, where: str, index: int, **extra: 
 class PoseTrack:
     """A short time-ordered buffer of pose samples with geodesic interpolation.
 
-    Samples are stored as ``(x, y, z, qx, qy, qz, qw)`` and turned into 4×4 matrices lazily, in
-    one vectorised call for all samples not converted yet. Memory stays bounded: the reader
+    Samples are stored as ``(x, y, z, qx, qy, qz, qw)`` and turned into 4×4 matrices lazily —
+    only those a query needs, in one vectorised call. Memory stays bounded: the reader
     trims samples that no pending scan can need.
     """
 
@@ -376,7 +376,6 @@ class PoseTrack:
         self.vecs: list[Array] = []
         self.mats: list[Array | None] = []
         self.max_gap = max_gap  # how far (s) outside the samples a query may hold the end pose
-        self.child_frame: str | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
