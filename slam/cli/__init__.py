@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "slam.cli.simulate_cmd",
     "slam.cli.solve_cmd",
     "slam.cli.map_cmd",
+    "slam.cli.run_cmd",
 )
 
 app = typer.Typer(

@@ -1,0 +1,154 @@
+"""Pose-graph back end of the pipeline: online iSAM2 (GTSAM) or periodic batch chordal solves.
+
+Every keyframe, odometry edge and loop closure is recorded in a :class:`~slam.graph.posegraph.PoseGraph`
+(written to ``graph.g2o``) and mirrored into the online solver. ``finish()`` runs the final batch
+optimisation (GTSAM Levenberg–Marquardt with robust kernels on loop edges, or our chordal solver),
+then drops loop closures the solution still violates by more than Cartographer's criterion
+(Hess et al. 2016, §VII-B: 20 cm / 1°) and solves again.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+from slam.graph.posegraph import PoseGraph, RobustKernel
+
+from .config import BackendConfig, LoopConfig
+from .loop_closure import LoopClosure
+
+Array = NDArray[np.float64]
+
+_KERNEL_NAMES = {"huber": "huber", "cauchy": "cauchy", "gm": "geman_mcclure"}
+
+
+def _values_to_poses(values, ids: list[int], dim: int) -> Array:  # type: ignore[no-untyped-def]
+    """All poses of a gtsam.Values in one call (``gtsam.utilities.extractPose2/3``), ordered by key."""
+    import gtsam
+
+    n = len(ids)
+    P = np.tile(np.eye(4), (n, 1, 1))
+    if dim == 2:
+        a = gtsam.utilities.extractPose2(values)
+        P[:] = G.xytheta_to_matrix(a)
+    else:
+        a = gtsam.utilities.extractPose3(values)
+        P[:, :3, :3] = a[:, :9].reshape(-1, 3, 3)
+        P[:, :3, 3] = a[:, 9:]
+    return P
+
+
+class PipelineBackend:
+    """Keeps the pose graph and the current estimate of every keyframe pose (``world_T_base``)."""
+
+    def __init__(self, config: BackendConfig, loops: LoopConfig, planar: bool) -> None:
+        self.config = config
+        self.loop_config = loops
+        self.dim = 2 if planar else 3
+        self.graph = PoseGraph(self.dim)
+        self.kernel = (RobustKernel(_KERNEL_NAMES[loops.robust_kernel], loops.robust_scale)
+                       if loops.robust_kernel != "none" else None)
+        self._poses: list[Array] = []
+        self._since_solve = 0
+        self.solve_time_s = 0.0
+        self.pruned_loops = 0
+        self._smoother = None
+        if config.kind == "gtsam":
+            from slam.backends.gtsam_backend import IncrementalSmoother
+
+            self._smoother = IncrementalSmoother(self.dim, relinearize_threshold=config.isam2_relinearize_threshold)
+
+    @property
+    def poses(self) -> Array:
+        """``(K, 4, 4)`` current estimates of the keyframe poses."""
+        return np.asarray(self._poses).reshape(-1, 4, 4)
+
+    def add_keyframe(self, node_id: int, initial_pose: Array) -> None:
+        self.graph.add_node(node_id, initial_pose)
+        self._poses.append(np.asarray(initial_pose, dtype=float))
+        if self._smoother is not None:
+            self._smoother.add_node(node_id, initial_pose)
+
+    def add_odometry(self, i: int, j: int, measurement: Array, covariance: Array) -> None:
+        info = np.linalg.inv(covariance)
+        self.graph.add_edge(i, j, measurement, info, "odometry")
+        if self._smoother is not None:
+            self._smoother.add_edge(i, j, measurement, info)
+
+    def add_loop(self, lc: LoopClosure) -> None:
+        info = np.linalg.inv(lc.covariance)
+        self.graph.add_edge(lc.i, lc.j, lc.measurement, info, "loop", self.kernel)
+        if self._smoother is not None:
+            self._smoother.add_edge(lc.i, lc.j, lc.measurement, info, self.kernel)
+
+    def update(self, loop_added: bool) -> None:
+        """Refresh the estimate after a keyframe (iSAM2 step, or a periodic chordal batch solve)."""
+        t0 = time.perf_counter()
+        if self._smoother is not None:
+            self._smoother.update()
+            est = self._smoother._estimate  # gtsam.Values of all keyframes
+            if loop_added:
+                P = _values_to_poses(est, self._smoother.node_ids, self.dim)
+                self._poses = list(P)
+            else:
+                self._poses[-1] = self._smoother.pose(len(self._poses) - 1)
+        else:
+            self._since_solve += 1
+            if loop_added and self._since_solve >= self.config.chordal_every_keyframes:
+                self._poses = list(self._solve_chordal(self.poses))
+                self._since_solve = 0
+        self.solve_time_s += time.perf_counter() - t0
+
+    def _solve_chordal(self, initial: Array) -> Array:
+        from slam.backends.chordal import solve_chordal
+
+        return solve_chordal(self.graph, initial).poses
+
+    def _solve_batch(self, initial: Array) -> Array:
+        if self.config.kind == "chordal":
+            return self._solve_chordal(initial)
+        from slam.backends.gtsam_backend import optimize
+
+        return optimize(self.graph, initial, method="lm", use_kernels=True).poses
+
+    def _violated_loops(self, poses: Array) -> list[int]:
+        """Indices of loop edges the solution violates by more than the pruning thresholds."""
+        c = self.loop_config
+        bad = []
+        for e, edge in enumerate(self.graph.edges()):
+            if edge.kind != "loop":
+                continue
+            err = G.relative(edge.measurement, G.relative(poses[self.graph.index_of(edge.i)], poses[self.graph.index_of(edge.j)]))
+            if (np.linalg.norm(err[:3, 3]) > c.prune_translation_m
+                    or np.degrees(np.linalg.norm(G.so3_log(err[:3, :3]))) > c.prune_rotation_deg):
+                bad.append(e)
+        return bad
+
+    def finish(self) -> Array:
+        """Final batch solve, prune violated closures, solve again; returns the keyframe poses."""
+        t0 = time.perf_counter()
+        P = self.poses
+        if self.config.final_batch and self.graph.num_edges > 0:
+            P = self._solve_batch(P)
+            bad = self._violated_loops(P)
+            if bad:
+                self.graph = _without_edges(self.graph, set(bad))
+                self.pruned_loops = len(bad)
+                P = self._solve_batch(P)
+        self._poses = list(P)
+        self.graph.set_poses(P)
+        self.solve_time_s += time.perf_counter() - t0
+        return P
+
+
+def _without_edges(graph: PoseGraph, drop: set[int]) -> PoseGraph:
+    g = PoseGraph(graph.dim)
+    for nid, T in zip(graph.node_ids, graph.poses):
+        g.add_node(int(nid), T)
+    for e, edge in enumerate(graph.edges()):
+        if e not in drop:
+            g.add_edge(edge.i, edge.j, edge.measurement, edge.information, edge.kind, edge.kernel)
+    return g

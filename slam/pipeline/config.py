@@ -1,0 +1,116 @@
+"""Typed configuration of ``slam run`` (pydantic; loadable from YAML, dumped next to every output).
+
+Distances are metres, angles radians, times seconds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapping.config import MappingConfig
+from registration.errors import ConfigError
+from slam.keyframes import KeyframeConfig
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class OdometryStageConfig(_Model):
+    """Which registration source gives odometry (``kiss`` = KISS-ICP, ``icp`` = our scan-to-map ICP)."""
+
+    method: Literal["kiss", "icp"] = "kiss"
+    use_wheel_odometry: bool = True
+    max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
+    min_range: float = Field(0.05, ge=0)
+    # Noise floor added to the odometry covariance per keyframe edge: σ² = a + b·distance (translation)
+    # and c + d·|angle| (rotation). Registration covariances treat the map as exact and are
+    # optimistic; the floor keeps loop closures able to correct accumulated drift.
+    floor_translation_m: float = Field(0.005, ge=0)
+    floor_translation_per_m: float = Field(0.01, ge=0)
+    floor_rotation_rad: float = Field(0.002, ge=0)
+    floor_rotation_per_rad: float = Field(0.01, ge=0)
+
+
+class LoopConfig(_Model):
+    """Loop-closure detection and verification."""
+
+    enabled: bool = True
+    search_radius_m: float = Field(2.0, gt=0, description="base radius around the current estimate")
+    radius_sigma_factor: float = Field(3.0, ge=0, description="radius grows by this × σ accumulated since the last closure")
+    max_radius_m: float = Field(8.0, gt=0)
+    exclude_recent_keyframes: int = Field(15, ge=1, description="keyframes this recent are not loop candidates")
+    max_candidates: int = Field(4, ge=1, description="spatial candidates verified per keyframe (nearest first)")
+    use_descriptor: bool = True
+    descriptor_candidates: int = Field(2, ge=0)
+    descriptor_max_distance: float = Field(0.25, gt=0, description="Scan Context distance below which a place is a candidate")
+    submap_keyframes: int = Field(3, ge=0, description="candidate's neighbours (±k keyframes) forming the ICP target")
+    icp_gates: tuple[float, ...] = (1.0, 0.4, 0.15)
+    icp_sigma: float = Field(0.03, gt=0, description="a-priori range-point noise σ (m) for the χ² test")
+    chi2_factor: float = Field(3.0, gt=0)
+    min_fitness: float = Field(0.6, gt=0, le=1.0)
+    max_rmse: float = Field(0.08, gt=0)
+    max_mahalanobis: float = Field(5.0, gt=0, description="consistency of a spatial closure with the estimate (σ units, after the radius)")
+    descriptor_min_fitness: float = Field(0.8, gt=0, le=1.0)
+    robust_kernel: Literal["none", "huber", "cauchy", "gm"] = "cauchy"
+    robust_scale: float = Field(1.0, gt=0, description="kernel width in whitened units (σ)")
+    covariance_floor_m: float = Field(0.01, ge=0)
+    covariance_floor_rad: float = Field(0.005, ge=0)
+    prune_translation_m: float = Field(0.2, gt=0, description="after the final solve, drop closures violated by more than this ...")
+    prune_rotation_deg: float = Field(1.0, gt=0, description="... or this, then solve again")
+
+
+class BackendConfig(_Model):
+    """Pose-graph back end: iSAM2 online + final batch LM (``gtsam``), or batch ``chordal``."""
+
+    kind: Literal["gtsam", "chordal"] = "gtsam"
+    isam2_relinearize_threshold: float = Field(0.01, gt=0)
+    final_batch: bool = True
+    chordal_every_keyframes: int = Field(50, ge=1, description="chordal back end: batch re-solve period for the online estimate")
+
+
+class MappingStageConfig(_Model):
+    """Occupancy map from the keyframe scans: Fast-GPOM submaps built online, fused at the optimised poses.
+
+    ``params.method`` ``gpom`` / ``logodds`` build the baseline maps from the keyframes at the final
+    poses instead; ``params.resolution`` is the cell size.
+    """
+
+    enabled: bool = True
+    keyframes_per_submap: int = Field(10, ge=1)
+    submap_half_size_m: float = Field(12.0, gt=0, description="half side of a submap's square grid")
+    recompose_every_keyframes: int = Field(50, ge=1, description="recompose the global map after an optimisation at most this often")
+    params: MappingConfig = Field(default_factory=MappingConfig, description="GP / Fast-GPOM / squash parameters")
+    height_band: tuple[float, float] = Field((-0.5, 1.5), description="3D logs: z band (m, sensor frame) sliced into the 2D map")
+    virtual_beams: int = Field(720, ge=8, description="3D logs: beams of the virtual planar scan made from the height band")
+    point_map_voxel: float = Field(0.2, gt=0, description="3D logs: voxel size of the PLY point map")
+
+
+class SlamConfig(_Model):
+    """Everything ``slam run`` needs besides the log."""
+
+    odometry: OdometryStageConfig = OdometryStageConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    loops: LoopConfig = LoopConfig()
+    backend: BackendConfig = BackendConfig()
+    mapping: MappingStageConfig = MappingStageConfig()
+    max_scans: int | None = Field(None, ge=1)
+    on_error: Literal["stop", "skip"] = "stop"
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "SlamConfig":
+        """Load from YAML; unknown keys and bad values raise ConfigError naming the file."""
+        try:
+            with open(path) as fh:
+                data = yaml.safe_load(fh) or {}
+            return cls.model_validate(data)
+        except (OSError, yaml.YAMLError, ValueError) as exc:
+            msg = " ".join(str(exc).split())
+            raise ConfigError(f"{path}: {msg}") from exc
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)

@@ -1,0 +1,127 @@
+"""Front end: per-scan odometry, keyframe selection and the odometry edges between keyframes.
+
+Poses here are robot-base poses ``world_T_base`` (4×4). The odometry source registers sensor
+frames; ``base_T_sensor`` converts. Each odometry edge's covariance is the compounded
+per-scan registration covariance (:func:`registration.geometry.compound_covariance`) plus a
+noise floor proportional to the motion (config ``odometry.floor_*``), because registration
+covariances treat the local map as exact and are optimistic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+from registration.frame import Frame
+from registration.odometry import Odometry, OdometryStep
+from registration.voxel import voxel_downsample
+from slam.keyframes import KeyframeSelector
+
+from .config import SlamConfig
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class Keyframe:
+    """A scan kept as a pose-graph node.
+
+    Attributes:
+        id: node id (0, 1, 2, … in time order).
+        scan_index: index of the scan among the scans read.
+        stamp: seconds.
+        odom_pose: ``world_T_base`` from the odometry source (the front end's estimate).
+        base_T_sensor: sensor on the robot.
+        points: sensor-frame hit points used for loop-closure ICP (voxel-downsampled), metres.
+        frame: the full scan (beams kept for 2D occupancy mapping).
+    """
+
+    id: int
+    scan_index: int
+    stamp: float
+    odom_pose: Array
+    base_T_sensor: Array
+    points: Array
+    frame: Frame
+
+
+@dataclass
+class OdometryEdge:
+    """Relative pose ``i_T_j`` between consecutive keyframes (base frames) and its covariance."""
+
+    i: int
+    j: int
+    measurement: Array
+    covariance: Array
+
+
+@dataclass
+class ScanTrack:
+    """Per-scan bookkeeping to give every scan a pose after optimisation."""
+
+    stamps: list[float] = field(default_factory=list)
+    odom_poses: list[Array] = field(default_factory=list)  # world_T_base from the odometry source
+    wheel_poses: list[Array | None] = field(default_factory=list)  # raw wheel odometry, if the log has it
+    keyframe: list[int] = field(default_factory=list)  # id of the latest keyframe at or before the scan
+
+
+class FrontEnd:
+    """Feeds frames to an odometry source and emits keyframes and odometry edges."""
+
+    def __init__(self, config: SlamConfig, odometry: Odometry) -> None:
+        self.config = config
+        self.odometry = odometry
+        self.selector = KeyframeSelector(config.keyframes)
+        self.keyframes: list[Keyframe] = []
+        self.track = ScanTrack()
+        self._cov_since_kf: Array | None = None
+        self._dof: int | None = None
+
+    def _floor(self, rel: Array) -> Array:
+        c = self.config.odometry
+        dist = float(np.linalg.norm(rel[:3, 3]))
+        ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
+        st = c.floor_translation_m**2 + c.floor_translation_per_m**2 * dist
+        sr = c.floor_rotation_rad**2 + c.floor_rotation_per_rad**2 * ang
+        if self._dof == 3:
+            return np.diag([st, st, sr])
+        return np.diag([st, st, st, sr, sr, sr])
+
+    def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
+        """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
+        step = self.odometry.update(frame)
+        if self._dof is None:
+            self._dof = 3 if frame.is_planar else 6
+        pose = step.world_T_base
+        if step.covariance is not None and self._cov_since_kf is not None:
+            # Covariance of the base increment equals that of the sensor increment conjugated by base_T_sensor.
+            A = G.adjoint(frame.base_T_sensor, planar=self._dof == 3)
+            cov_base = A @ step.covariance @ A.T
+            B = frame.base_T_sensor
+            base_inc = B @ step.prev_T_curr @ G.inverse(B)
+            self._cov_since_kf = G.compound_covariance(self._cov_since_kf, base_inc, cov_base)
+        self.track.stamps.append(frame.stamp)
+        self.track.odom_poses.append(pose)
+        self.track.wheel_poses.append(frame.odom)
+        new_kf = edge = None
+        if self.selector.is_keyframe(frame.stamp, pose):
+            pts = frame.points
+            r = np.linalg.norm(pts, axis=1)
+            c = self.config.odometry
+            pts = pts[(r >= c.min_range) & (r <= c.max_range)]
+            vs = 0.02 if frame.is_planar else 0.3
+            kf = Keyframe(len(self.keyframes), len(self.track.stamps) - 1, frame.stamp, pose,
+                          np.asarray(frame.base_T_sensor, dtype=float), voxel_downsample(pts, vs), frame)
+            if self.keyframes:
+                prev = self.keyframes[-1]
+                rel = G.relative(prev.odom_pose, pose)
+                cov = self._cov_since_kf if self._cov_since_kf is not None else np.zeros((self._dof, self._dof))
+                edge = OdometryEdge(prev.id, kf.id, rel, cov + self._floor(rel))
+            self.keyframes.append(kf)
+            self._cov_since_kf = np.zeros((self._dof, self._dof))
+            new_kf = kf
+        self.track.keyframe.append(len(self.keyframes) - 1)
+        return new_kf, edge, step

@@ -1,0 +1,198 @@
+"""Loop-closure detection and verification between keyframes.
+
+Candidates (Olson, "Recognizing places using spectrally clustered local matches", RAS 2009, §2 gives
+the usual recipe): keyframes whose current estimate lies within a radius of the new keyframe that
+grows with the uncertainty accumulated since the last accepted closure, recent keyframes excluded;
+plus, for 2D scans, places whose Scan Context descriptor matches (:mod:`slam.loops.descriptor`),
+which finds revisits the drifted estimate cannot reach.
+
+Verification: point-to-plane ICP (:func:`registration.point_to_plane.icp_point_to_plane`) of the new
+keyframe's scan against the candidate's local map (the candidate and its ±k neighbouring keyframes
+in the candidate's sensor frame), from the estimate's relative pose (spatial) or the descriptor's
+heading (place recognition). A closure is accepted when (1) the residual χ² test passes
+(Res ≤ factor·(n − dof)·σ²), (2) the fitness (inlier fraction) and RMSE are good enough and (3) it
+is consistent: for spatial candidates the Mahalanobis distance between the ICP result and the
+estimate, under the accumulated uncertainty, is small; for descriptor candidates a second ICP from
+a perturbed start must reach the same pose (a unique basin).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+from registration.config import IcpConfig
+from registration.errors import DegenerateInputError
+from registration.icp import IcpTarget
+from registration.point_to_plane import icp_point_to_plane
+from slam.loops.descriptor import DescriptorIndex, PolarDescriptorConfig, polar_descriptor
+
+from .config import LoopConfig
+from .frontend import Keyframe
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class LoopClosure:
+    """An accepted constraint ``i_T_j`` between keyframes (base frames), ICP covariance, diagnostics."""
+
+    i: int  # older keyframe (the candidate)
+    j: int  # newer keyframe
+    measurement: Array
+    covariance: Array
+    fitness: float
+    rmse: float
+    source: str  # "spatial" or "descriptor"
+
+
+@dataclass
+class LoopStats:
+    candidates: int = 0
+    verified: int = 0
+    accepted: int = 0
+    rejected_icp: int = 0
+    rejected_chi2: int = 0
+    rejected_fitness: int = 0
+    rejected_consistency: int = 0
+
+
+class LoopCloser:
+    """Finds and verifies loop closures for each new keyframe."""
+
+    def __init__(self, config: LoopConfig, planar: bool) -> None:
+        self.config = config
+        self.planar = planar
+        self.dof = 3 if planar else 6
+        self.stats = LoopStats()
+        self.index = DescriptorIndex(PolarDescriptorConfig()) if planar and config.use_descriptor else None
+        self._icp = IcpConfig(gates=config.icp_gates, max_iterations=40, tol_translation=1e-4, tol_rotation=1e-4,
+                              robust="cauchy", robust_scale=config.icp_sigma * 2.0, sigma=config.icp_sigma,
+                              chi2_factor=config.chi2_factor, covariance_model="plane", workers=1)
+        self._icp_wide = self._icp.model_copy(update={"gates": (2.0,) + tuple(config.icp_gates)})
+
+    # ------------------------------------------------------------------ candidates
+    def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float) -> list[int]:
+        """Keyframe ids within *radius* (m) of *kf*'s estimate, nearest first, older than the exclusion window."""
+        c = self.config
+        last = kf.id - c.exclude_recent_keyframes
+        if last <= 0:
+            return []
+        d = np.linalg.norm(positions[:last, :2] - positions[kf.id, :2], axis=1)
+        near = np.flatnonzero(d < radius)
+        near = near[np.argsort(d[near])]
+        chosen: list[int] = []
+        for j in near:  # spread the candidates: skip keyframes whose local maps would overlap a chosen one
+            if all(abs(int(j) - k) > c.submap_keyframes for k in chosen):
+                chosen.append(int(j))
+            if len(chosen) >= c.max_candidates:
+                break
+        return chosen
+
+    def descriptor_candidates(self, kf: Keyframe) -> list[tuple[int, float]]:
+        """(id, yaw guess) of stored places whose descriptor matches *kf*'s scan (2D only)."""
+        if self.index is None or self.config.descriptor_candidates == 0:
+            return []
+        desc = polar_descriptor(kf.points, self.index.cfg)
+        hits = self.index.query(desc, k=self.config.descriptor_candidates,
+                                exclude_after=kf.id - self.config.exclude_recent_keyframes)
+        return [(i, yaw) for i, dist, yaw in hits if dist <= self.config.descriptor_max_distance]
+
+    def remember(self, kf: Keyframe) -> None:
+        if self.index is not None:
+            self.index.add(kf.id, kf.points)
+
+    # ------------------------------------------------------------------ verification
+    def _local_map(self, keyframes: list[Keyframe], poses: Array, i: int) -> Array:
+        """Points of keyframes i±k in keyframe i's sensor frame, from the current pose estimates."""
+        k = self.config.submap_keyframes
+        lo, hi = max(0, i - k), min(len(poses), i + k + 1)
+        ref = poses[i] @ keyframes[i].base_T_sensor
+        inv_ref = G.inverse(ref)
+        parts = [G.transform_points(inv_ref @ poses[m] @ keyframes[m].base_T_sensor, keyframes[m].points)
+                 for m in range(lo, hi)]
+        return np.vstack(parts)
+
+    def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
+               relative_cov: Array | None, source: str) -> LoopClosure | None:
+        """ICP of keyframe *j*'s scan onto *i*'s local map from ``guess_sensor = i_sensor_T_j_sensor``."""
+        c = self.config
+        self.stats.verified += 1
+        kj = keyframes[j]
+        try:
+            target = IcpTarget(self._local_map(keyframes, poses, i), normal_neighbors=8, workers=1)
+            cfg = self._icp if source == "spatial" else self._icp_wide
+            res = icp_point_to_plane(kj.points, target, guess_sensor, cfg)
+        except DegenerateInputError:
+            self.stats.rejected_icp += 1
+            return None
+        if not res.accepted:
+            self.stats.rejected_chi2 += 1
+            return None
+        min_fit = c.min_fitness if source == "spatial" else c.descriptor_min_fitness
+        if res.fitness < min_fit or res.rmse > c.max_rmse or res.degenerate:
+            self.stats.rejected_fitness += 1
+            return None
+        T = res.transform
+        if self.planar:
+            T = G.xytheta_to_matrix(G.matrix_to_xytheta(T))
+        if source == "spatial" and relative_cov is not None:
+            innov = (G.se2_log(G.inverse(guess_sensor) @ T) if self.planar
+                     else G.se3_log(G.inverse(guess_sensor) @ T))
+            S = relative_cov + res.covariance
+            m2 = float(innov @ np.linalg.solve(S, innov))
+            if m2 > c.max_mahalanobis**2 * self.dof:
+                self.stats.rejected_consistency += 1
+                return None
+        if source == "descriptor":
+            # Unique basin: restart from a perturbed guess and require the same answer.
+            pert = G.xytheta_to_matrix(0.3, -0.3, 0.15) if self.planar else G.se3_exp([0.5, -0.5, 0.0, 0.0, 0.0, 0.1])
+            try:
+                res2 = icp_point_to_plane(kj.points, target, guess_sensor @ pert, self._icp_wide)
+            except DegenerateInputError:
+                self.stats.rejected_consistency += 1
+                return None
+            d = G.relative(res.transform, res2.transform)
+            if np.linalg.norm(d[:3, 3]) > 0.05 or np.linalg.norm(G.so3_log(d[:3, :3])) > np.radians(1.0):
+                self.stats.rejected_consistency += 1
+                return None
+        Bi, Bj = keyframes[i].base_T_sensor, kj.base_T_sensor
+        meas = Bi @ T @ G.inverse(Bj)  # i_base_T_j_base
+        A = G.adjoint(Bj, planar=self.planar)
+        cov = A @ res.covariance @ A.T
+        floor = np.diag([c.covariance_floor_m**2] * (2 if self.planar else 3) + [c.covariance_floor_rad**2] * (1 if self.planar else 3))
+        self.stats.accepted += 1
+        return LoopClosure(i, j, meas, cov + floor, float(res.fitness), float(res.rmse), source)
+
+    def detect(self, keyframes: list[Keyframe], poses: Array, j: int, cov_since_closure: Array) -> list[LoopClosure]:
+        """All accepted closures between the new keyframe *j* and older keyframes, given estimates *poses*."""
+        c = self.config
+        if not c.enabled:
+            return []
+        kj = keyframes[j]
+        sig = float(np.sqrt(max(np.trace(cov_since_closure[: (2 if self.planar else 3), : (2 if self.planar else 3)]), 0.0)))
+        radius = min(c.max_radius_m, c.search_radius_m + c.radius_sigma_factor * sig)
+        out: list[LoopClosure] = []
+        tried: set[int] = set()
+        for i in self.spatial_candidates(kj, poses[:, :3, 3], radius):
+            self.stats.candidates += 1
+            tried.add(i)
+            guess = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor
+            lc = self.verify(keyframes, poses, i, j, guess, cov_since_closure, "spatial")
+            if lc is not None:
+                out.append(lc)
+        if not out:
+            for i, yaw in self.descriptor_candidates(kj):
+                if any(abs(i - t) <= c.submap_keyframes for t in tried):
+                    continue
+                self.stats.candidates += 1
+                guess = G.xytheta_to_matrix(0.0, 0.0, yaw)
+                lc = self.verify(keyframes, poses, i, j, guess, None, "descriptor")
+                if lc is not None:
+                    out.append(lc)
+                    break
+        self.remember(kj)
+        return out

@@ -1,0 +1,100 @@
+"""Write the results of a SLAM run into one folder, atomically (see docs/ARCHITECTURE.md).
+
+Files: ``trajectory.tum`` (optimised pose of every scan), ``odometry.tum`` (front-end odometry),
+``wheel_odometry.tum`` (when the log has it), ``graph.g2o`` (loop edges marked), ``node_stamps.txt``
+(graph node id → scan stamp), map files (``map.pgm/.yaml/.png``, ``variance.png``, ``map.npz``),
+``points.ply`` (3D logs), ``result.mcap`` (OccupancyGrid, Paths, TF, keyframe scans; opens in
+Foxglove), ``summary.json`` and ``config.yaml``. Everything is first written into a temporary
+folder beside the target and moved in only when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from registration.atomic import atomic_directory
+
+from .config import SlamConfig
+from .run import SlamResult
+
+
+def _versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for pkg in ("gpslam", "numpy", "scipy", "gtsam", "kiss-icp", "open3d", "mcap", "rosbags"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def _write_mcap(path: Path, result: SlamResult, occ_map) -> None:  # type: ignore[no-untyped-def]
+    from mapping.occupancy_map import write_occupancy_grid
+    from slam.logs.mcap_writer import McapLogWriter
+
+    t_end = float(result.stamps[-1])
+    with McapLogWriter(path) as w:
+        if occ_map is not None:
+            write_occupancy_grid(occ_map, w, "/map", "map", float(result.stamps[0]))
+        w.write_path("/path", t_end, "map", result.stamps, result.poses)
+        w.write_path("/odometry_path", t_end, "map", result.stamps, result.odometry)
+        kf_index = {kf.scan_index for kf in result.keyframes}
+        for s, (t, T) in enumerate(zip(result.stamps, result.poses)):
+            if s in kf_index or s % 5 == 0:
+                w.write_tf(float(t), [("map", "base_link", T)])
+        for kf, T in zip(result.keyframes, result.keyframe_poses):
+            f = kf.frame
+            w.write_tf(float(f.stamp), [("base_link", "sensor", kf.base_T_sensor)])
+            if f.is_planar and f.ranges is not None and len(f.angles) > 1:
+                inc = float((f.angles[-1] - f.angles[0]) / (len(f.angles) - 1))
+                rmax = f.max_range if np.isfinite(f.max_range) else float(np.nanmax(np.where(np.isfinite(f.ranges), f.ranges, 0)) + 1)
+                w.write_scan("/scan", float(f.stamp), "sensor", float(f.angles[0]), inc, f.min_range, rmax, f.ranges)
+            elif not f.is_planar:
+                w.write_pointcloud("/points", float(f.stamp), "sensor", kf.points)
+
+
+def _write_ply(path: Path, result: SlamResult, voxel: float) -> None:
+    import open3d as o3d
+
+    from registration import geometry as G
+    from registration.voxel import voxel_downsample
+
+    parts = [G.transform_points(T @ kf.base_T_sensor, kf.points) for kf, T in zip(result.keyframes, result.keyframe_poses)]
+    pts = voxel_downsample(np.vstack(parts), voxel)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    if not o3d.io.write_point_cloud(str(path), pc):
+        raise OSError(f"open3d could not write {path}")
+
+
+def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: SlamConfig, summary: dict) -> Path:  # type: ignore[no-untyped-def]
+    """Write every output of a run into *out_dir* (atomically); returns the folder."""
+    from mapping.occupancy_map import export_map
+    from slam.graph.g2o import write_g2o
+    from slam.trajectory_io import Trajectory, write_tum
+
+    out = Path(out_dir)
+    with atomic_directory(out) as tmp:
+        write_tum(tmp / "trajectory.tum", Trajectory(result.stamps, result.poses, "slam"))
+        write_tum(tmp / "odometry.tum", Trajectory(result.stamps, result.odometry, "odometry"))
+        if result.wheel is not None:
+            write_tum(tmp / "wheel_odometry.tum", Trajectory(result.stamps, result.wheel, "wheel odometry"))
+        write_g2o(result.backend.graph, tmp / "graph.g2o")
+        with open(tmp / "node_stamps.txt", "w") as fh:
+            fh.write("# node_id stamp\n")
+            fh.writelines(f"{kf.id} {kf.stamp!r}\n" for kf in result.keyframes)
+        if occ_map is not None:
+            export_map(occ_map, tmp, config.mapping.params.occupied_thresh, config.mapping.params.free_thresh)
+        if not result.planar:
+            _write_ply(tmp / "points.ply", result, config.mapping.point_map_voxel)
+        _write_mcap(tmp / "result.mcap", result, occ_map)
+        summary = dict(summary, versions=_versions(), config=config.model_dump(mode="json"))
+        with open(tmp / "summary.json", "w") as fh:
+            json.dump(summary, fh, indent=2, default=float)
+        (tmp / "config.yaml").write_text(config.to_yaml())
+    return out

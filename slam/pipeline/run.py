@@ -1,0 +1,154 @@
+"""``run_slam``: the whole pipeline on one log, streaming its frames once.
+
+1. odometry per scan (KISS-ICP or our scan-to-map ICP; wheel odometry as the initial guess);
+2. keyframes and odometry edges with the compounded registration covariance;
+3. loop closures for every keyframe, verified by ICP (χ², fitness, consistency);
+4. iSAM2 after every keyframe (or periodic chordal batch solves), a final batch solve;
+5. a pose for every scan, the occupancy map from the keyframe scans, all outputs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+from registration.errors import GpslamError
+from registration.frame import Frame
+from registration.odometry import Odometry
+
+from .backend import PipelineBackend
+from .config import SlamConfig
+from .frontend import FrontEnd, Keyframe
+from .loop_closure import LoopCloser, LoopClosure
+from .mapping_stage import MapBuilder
+from .trajectory import interpolate_scan_poses
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class Progress:
+    """What the progress bar shows after each scan."""
+
+    scans: int
+    keyframes: int
+    loop_closures: int
+    elapsed_s: float
+
+
+@dataclass
+class SlamResult:
+    """Everything the outputs are written from."""
+
+    planar: bool
+    stamps: Array  # (N,) every scan
+    poses: Array  # (N, 4, 4) optimised world_T_base of every scan
+    odometry: Array  # (N, 4, 4) front-end odometry world_T_base
+    wheel: Array | None  # (N, 4, 4) raw wheel odometry, when every scan has it
+    keyframes: list[Keyframe]
+    keyframe_poses: Array  # (K, 4, 4) optimised
+    backend: PipelineBackend
+    loops: list[LoopClosure]
+    loop_stats: dict
+    stage_times_s: dict[str, float]
+    occupancy_map: object | None = None  # mapping.occupancy_map.OccupancyMap
+    map_builder: MapBuilder | None = None
+    skipped_scans: int = 0
+    errors: list[str] = field(default_factory=list)
+
+
+def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
+    """The configured odometry source for planar (2D laser) or 3D frames."""
+    from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
+    from registration.odometry import IcpOdometry, KissOdometry
+
+    c = config.odometry
+    if c.method == "kiss":
+        base = KissOdometryConfig.planar_default() if planar else KissOdometryConfig()
+        kc = base.model_copy(update={"use_wheel_odometry": c.use_wheel_odometry,
+                                     "max_range": c.max_range if planar else base.max_range})
+        return KissOdometry(kc)
+    icp_cfg = IcpConfig(gates=(0.5, 0.2), max_iterations=30, tol_translation=1e-4, tol_rotation=1e-4,
+                        robust="cauchy", robust_scale=0.05, workers=1) if planar else IcpConfig(
+                        gates=(1.5, 0.6, 0.3), voxel_size=0.5, robust="cauchy", robust_scale=0.2)
+    return IcpOdometry(IcpOdometryConfig(icp=icp_cfg, map_scans=10, map_voxel_size=0.03 if planar else 0.3,
+                                         max_range=c.max_range if planar else 100.0, min_range=c.min_range,
+                                         use_wheel_odometry=c.use_wheel_odometry))
+
+
+def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
+    """Run the pipeline over an iterable of :class:`Frame` (time order)."""
+    t_start = time.perf_counter()
+    times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
+    front: FrontEnd | None = None
+    closer: LoopCloser | None = None
+    backend: PipelineBackend | None = None
+    loops: list[LoopClosure] = []
+    cov_since_closure: Array | None = None
+    planar = True
+    n = 0
+    for frame in frames:
+        if config.max_scans is not None and n >= config.max_scans:
+            break
+        if front is None:
+            planar = frame.is_planar
+            front = FrontEnd(config, make_odometry(config, planar))
+            closer = LoopCloser(config.loops, planar)
+            backend = PipelineBackend(config.backend, config.loops, planar)
+            mapper = MapBuilder(config.mapping, planar)
+            dof = 3 if planar else 6
+            cov_since_closure = np.zeros((dof, dof))
+        t0 = time.perf_counter()
+        kf, edge, _ = front.process(frame)
+        t1 = time.perf_counter()
+        times["odometry_s"] += t1 - t0
+        n += 1
+        if kf is not None:
+            if edge is None:
+                backend.add_keyframe(kf.id, kf.odom_pose)
+            else:
+                backend.add_keyframe(kf.id, backend.poses[edge.i] @ edge.measurement)
+                backend.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance)
+                cov_since_closure = G.compound_covariance(cov_since_closure, edge.measurement, edge.covariance)
+            t2 = time.perf_counter()
+            new = closer.detect(front.keyframes, backend.poses, kf.id, cov_since_closure)
+            t3 = time.perf_counter()
+            times["loop_closure_s"] += t3 - t2
+            for lc in new:
+                backend.add_loop(lc)
+            loops.extend(new)
+            if new:
+                cov_since_closure = np.zeros_like(cov_since_closure)
+            backend.update(loop_added=bool(new))
+            t5 = time.perf_counter()
+            times["backend_s"] += t5 - t3
+            mapper.add_keyframe(kf, backend.poses[kf.id])
+            if new:
+                mapper.refresh(backend.poses)
+            times["mapping_s"] += time.perf_counter() - t5
+        if progress is not None:
+            progress(Progress(n, len(front.keyframes), len(loops), time.perf_counter() - t_start))
+    if front is None or not front.keyframes:
+        raise GpslamError("the log yielded no scans")
+    t4 = time.perf_counter()
+    kf_poses = backend.finish()
+    times["final_solve_s"] = time.perf_counter() - t4
+    tr = front.track
+    stamps = np.asarray(tr.stamps)
+    odom = np.asarray(tr.odom_poses)
+    kfs = front.keyframes
+    poses = interpolate_scan_poses(stamps, odom, np.asarray(tr.keyframe), np.array([k.stamp for k in kfs]),
+                                   np.array([k.odom_pose for k in kfs]), kf_poses, planar)
+    wheel = np.asarray(tr.wheel_poses) if all(w is not None for w in tr.wheel_poses) else None
+    stats = vars(closer.stats).copy()
+    stats["pruned"] = backend.pruned_loops
+    t6 = time.perf_counter()
+    occ = mapper.finish(kfs, kf_poses)
+    times["mapping_s"] += time.perf_counter() - t6
+    return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, backend, loops, stats, times, occ, mapper)
