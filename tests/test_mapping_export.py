@@ -11,6 +11,15 @@ from mapping.occupancy_map import OccupancyMap, export_map, load_npz, write_occu
 from mapping.roc import map_roc, resample_to_grid, roc_auc, roc_curve
 
 
+@pytest.fixture(autouse=True)
+def single_blas_thread():
+    """Batched small LAPACK calls thrash with several BLAS threads on the shared 2-core machine."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
+
 def _random_map(rng, shape=(37, 53)):
     g = GridGeometry((-1.3, 2.05), 0.05, shape)
     mean = rng.normal(0, 1, shape)

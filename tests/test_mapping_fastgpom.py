@@ -14,6 +14,15 @@ from mapping.grid import GridGeometry
 from registration.frame import Frame
 from registration.geometry import xytheta_to_matrix
 
+
+@pytest.fixture(autouse=True)
+def single_blas_thread():
+    """Batched small LAPACK calls thrash with several BLAS threads on the shared 2-core machine."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
 HYP = GPHyperparameters(3.5, 1.90, 8.13, 0.226)  # the reference code's constants
 
 

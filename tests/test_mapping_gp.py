@@ -8,6 +8,15 @@ import pytest
 from mapping.gp import GaussianProcess, GPHyperparameters, MaternKernel, fit_hyperparameters, log_marginal_likelihood
 
 
+@pytest.fixture(autouse=True)
+def single_blas_thread():
+    """Batched small LAPACK calls thrash with several BLAS threads on the shared 2-core machine."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
+
 @pytest.mark.parametrize("nu", [1.5, 2.5, 3.5])
 def test_matches_sklearn(nu, rng):
     """Mean and latent variance equal sklearn's GaussianProcessRegressor (same Matérn, alpha=σn²) to 1e-8."""
@@ -62,11 +71,11 @@ def test_fit_recovers_length_scale():
     """Hyperparameters fitted to a sample drawn from a known GP recover ℓ, σf, σn within ~25 %."""
     rng = np.random.default_rng(7)
     true = GPHyperparameters(nu=3.5, length_scale=0.6, sigma_f=1.5, sigma_n=0.1)
-    X = rng.uniform(0, 6, (500, 2))
+    X = rng.uniform(0, 6, (400, 2))
     K = true.kernel(X) + 1e-9 * np.eye(len(X))
     f = np.linalg.cholesky(K) @ rng.normal(size=len(X))
     y = f + true.sigma_n * rng.normal(size=len(X))
-    fit = fit_hyperparameters(X, y, GPHyperparameters(nu=3.5, length_scale=2.0, sigma_f=0.5, sigma_n=0.5), restarts=1)
+    fit = fit_hyperparameters(X, y, GPHyperparameters(nu=3.5, length_scale=2.0, sigma_f=0.5, sigma_n=0.5), restarts=0)
     assert fit.length_scale == pytest.approx(0.6, rel=0.2)
     assert fit.sigma_n == pytest.approx(0.1, rel=0.25)
     assert fit.sigma_f == pytest.approx(1.5, rel=0.5)

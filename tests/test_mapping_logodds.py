@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mapping.config import MappingConfig
 from mapping.grid import GridGeometry
@@ -10,6 +11,15 @@ from mapping.logodds import LogOddsGrid
 from registration.frame import Frame
 from registration.geometry import xytheta_to_matrix
 from tests.test_mapping_fastgpom import box_world, cast
+
+
+@pytest.fixture(autouse=True)
+def single_blas_thread():
+    """Batched small LAPACK calls thrash with several BLAS threads on the shared 2-core machine."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
 
 
 def test_single_beam_free_then_occupied():

@@ -12,6 +12,15 @@ from mapping.submaps import SubmapFuser
 from registration.geometry import xytheta_to_matrix
 from tests.test_mapping_fastgpom import HYP, box_world, cast
 
+
+@pytest.fixture(autouse=True)
+def single_blas_thread():
+    """Batched small LAPACK calls thrash with several BLAS threads on the shared 2-core machine."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
 POSES = [(-1.5, -1.0, 0.2), (-1.0, 1.0, -0.4), (1.0, -2.0, 1.0), (2.0, 2.0, -2.5)]
 
 
