@@ -18,7 +18,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from .align import align_svd
 from .config import IcpConfig
 from .covariance import (Chi2Verdict, chi2_test, covariance_from_information, fisher_information,
                          jacobian_plane, jacobian_point)
@@ -129,6 +128,41 @@ def pose_increment(A: Array, B: Array) -> tuple[float, float]:
     return float(np.linalg.norm(D[:3, 3])), float(np.arccos(c))
 
 
+# Below this many queries scipy's thread start/join costs more than the parallel search saves.
+_PARALLEL_MIN_QUERIES = 20000
+
+
+def _workers(n: int, workers: int) -> int:
+    """cKDTree ``workers`` for *n* queries: one thread for small batches."""
+    return workers if n >= _PARALLEL_MIN_QUERIES else 1
+
+
+def _svd_step(P: Array, Q: Array, w: Array | None) -> tuple[Array, Array]:
+    """Inner-loop form of :func:`registration.align.align_svd` (same equations, no input checks;
+    degenerate pairs are caught by the checks of the final :func:`evaluate_alignment`): ``(R, t)``.
+    In 2D the maximiser of tr(R H) is closed form, θ = atan2(H01 − H10, H00 + H11)."""
+    if w is None:
+        pm, qm = P.mean(axis=0), Q.mean(axis=0)
+        H = (P - pm).T @ (Q - qm)
+    else:
+        sw = w.sum()
+        if sw <= 0:
+            raise DegenerateInputError("all correspondence weights are zero")
+        pm, qm = (w @ P) / sw, (w @ Q) / sw
+        H = (P - pm).T @ ((Q - qm) * w[:, None])
+    if P.shape[1] == 2:
+        th = np.arctan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
+        c, s = np.cos(th), np.sin(th)
+        R = np.array([[c, -s], [s, c]])
+    else:
+        U, _, Vt = np.linalg.svd(H)
+        V = Vt.T
+        if np.linalg.det(V @ U.T) < 0:
+            V[:, -1] = -V[:, -1]
+        R = V @ U.T
+    return R, qm - R @ pm
+
+
 def _as_target(target: ArrayLike | IcpTarget, config: IcpConfig) -> IcpTarget:
     if isinstance(target, IcpTarget):
         return target
@@ -158,7 +192,7 @@ def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: 
     d = tgt.dim
     R, t = T[:d, :d], T[:d, 3]
     moved = S @ R.T + t
-    dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=config.workers)
+    dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=_workers(len(S), config.workers))
     ok = np.isfinite(dist)
     n_in = int(ok.sum())
     if n_in < config.min_inliers:
@@ -209,22 +243,34 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     d = tgt.dim
     it = 0
     converged = False
-    tree, tpts, workers = tgt.tree, tgt.points, config.workers
+    tree, tpts, workers = tgt.tree, tgt.points, _workers(len(S), config.workers)
+    robust = config.robust != "none"
+    tol_t, tol_r = config.tol_translation, config.tol_rotation
+    R, t = T[:d, :d].copy(), T[:d, 3].copy()
     for gate in config.gates:
         converged = False
         while it < config.max_iterations:
             it += 1
-            moved = S @ T[:d, :d].T + T[:d, 3]
-            dist, idx = tree.query(moved, k=1, distance_upper_bound=gate, workers=workers)
-            ok = np.isfinite(dist)
-            if np.count_nonzero(ok) < config.min_inliers:
-                raise DegenerateInputError(
-                    f"ICP iteration {it}: {int(ok.sum())} pairs within {gate} m (need {config.min_inliers})")
-            w = None if config.robust == "none" else robust_weights(dist[ok], config)
-            T_new = align_svd(S[ok], tpts[idx[ok]], w)
-            dt, dr = pose_increment(T, T_new)
-            T = T_new
-            if dt < config.tol_translation and dr < config.tol_rotation:
+            dist, idx = tree.query(S @ R.T + t, k=1, distance_upper_bound=gate, workers=workers)
+            if dist[-1] < np.inf and dist.max() < np.inf:  # every point matched: no mask copies
+                P, Q, dsel = S, tpts[idx], dist
+            else:
+                ok = dist < np.inf
+                if np.count_nonzero(ok) < config.min_inliers:
+                    raise DegenerateInputError(
+                        f"ICP iteration {it}: {int(ok.sum())} pairs within {gate} m (need {config.min_inliers})")
+                P, Q, dsel = S[ok], tpts[idx[ok]], dist[ok]
+            R_new, t_new = _svd_step(P, Q, robust_weights(dsel, config) if robust else None)
+            dt = float(np.linalg.norm(t_new - t))
+            if d == 2:
+                dr = abs(float(np.arctan2(R_new[1, 0], R_new[0, 0]) - np.arctan2(R[1, 0], R[0, 0])))
+                dr = min(dr, 2.0 * np.pi - dr)
+            else:
+                dr = float(np.linalg.norm(R_new - R)) / np.sqrt(2.0)  # = 2 sin(α/2) ≈ α, no √ε floor
+            R, t = R_new, t_new
+            if dt < tol_t and dr < tol_r:
                 converged = True
                 break
+    T = np.eye(4)
+    T[:d, :d], T[:d, 3] = R, t
     return evaluate_alignment(S, tgt, T, config.gates[-1], config, it, converged)

@@ -15,20 +15,22 @@ from scipy.spatial import cKDTree
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se2_exp, se3_exp
-from .icp import IcpResult, IcpTarget, _as_target, _prepare, evaluate_alignment, robust_weights
+from .icp import IcpResult, IcpTarget, _as_target, _prepare, _workers, evaluate_alignment, robust_weights
 
 Array = NDArray[np.float64]
 
 __all__ = ["estimate_normals", "icp_point_to_plane"]
 
 
-def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -1) -> Array:
+def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -1,
+                     return_eigenvalues: bool = False) -> Array | tuple[Array, Array]:
     """Unit normals ``(N, d)`` at *points* from the *k* nearest points of *tree* (PCA, Hoppe 1992).
 
     The normal is the eigenvector of the smallest eigenvalue of the neighbours' scatter matrix;
-    its sign is arbitrary (only n nᵀ is used)."""
+    its sign is arbitrary (only n nᵀ is used). With *return_eigenvalues* (3D only) the ascending
+    scatter eigenvalues ``(N, 3)`` are returned too, for planarity tests."""
     k = min(k, tree.n)
-    _, nn = tree.query(points, k=k, workers=workers)
+    _, nn = tree.query(points, k=k, workers=workers if len(points) >= 20000 else 1)
     nb = tree.data[nn]  # (N, k, d)
     c = nb - nb.mean(axis=1, keepdims=True)
     if nb.shape[2] == 2:
@@ -39,7 +41,9 @@ def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -
         phi = 0.5 * np.arctan2(2.0 * b, a - cc)
         return np.column_stack([-np.sin(phi), np.cos(phi)])
     C = np.einsum("nki,nkj->nij", c, c)
-    _, V = np.linalg.eigh(C)
+    ev, V = np.linalg.eigh(C)
+    if return_eigenvalues:
+        return V[:, :, 0], ev
     return V[:, :, 0]
 
 
@@ -55,6 +59,7 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     d = tgt.dim
     normals = tgt.normals()
     exp = se2_exp if d == 2 else se3_exp
+    workers = _workers(len(S), config.workers)
     it = 0
     converged = False
     for gate in config.gates:
@@ -62,7 +67,7 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
         while it < config.max_iterations:
             it += 1
             moved = S @ T[:d, :d].T + T[:d, 3]
-            dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=config.workers)
+            dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=workers)
             ok = np.flatnonzero(np.isfinite(dist))
             if len(ok) < config.min_inliers:
                 raise DegenerateInputError(
