@@ -55,11 +55,10 @@ class ChordalResult:
 
 
 class _Pattern:
-    """Sparsity pattern of H over the free (non-anchored) nodes, built once per graph."""
+    """Block sparsity pattern of H over the free (non-anchored) nodes, built once per graph (and once more
+    after the fill-reducing ordering is known): D×D blocks in BSR form, converted to CSC for SuperLU."""
 
-    def __init__(self, ii: NDArray[np.int64], jj: NDArray[np.int64], var: NDArray[np.int64], D: int,
-                 perm: NDArray[np.int64] | None = None) -> None:
-        # perm: optional symmetric scalar permutation; variable v is stored at position perm[v].
+    def __init__(self, ii: NDArray[np.int64], jj: NDArray[np.int64], var: NDArray[np.int64], D: int) -> None:
         m = len(jj)
         vi = np.where(ii >= 0, var[np.maximum(ii, 0)], -1)
         vj = var[jj]
@@ -73,51 +72,44 @@ class _Pattern:
         br, bc, bs, be = br[keep], bc[keep], bs[keep], be[keep]
         self.n = int(var.max()) + 1 if var.size and var.max() >= 0 else 0
         self.D = D
-        nv = self.n * D
-        rr, cc = np.meshgrid(np.arange(D), np.arange(D), indexing="ij")
-        rows = (br[:, None] * D + rr.ravel()[None, :]).ravel()
-        cols = (bc[:, None] * D + cc.ravel()[None, :]).ravel()
-        self.perm = perm
-        if perm is not None:
-            rows, cols = perm[rows], perm[cols]
-        key = rows.astype(np.int64) * nv + cols
-        uniq, self.inverse = np.unique(key, return_inverse=True)
-        urow = uniq // nv
-        self.indices = (uniq % nv).astype(np.int32)
-        self.indptr = np.searchsorted(urow, np.arange(nv + 1)).astype(np.int32)
-        self.nnz = len(uniq)
+        n = self.n
+        uniq, inverse = np.unique(br.astype(np.int64) * n + bc, return_inverse=True)
+        self.nnzb = len(uniq)
+        self.indices = (uniq % n).astype(np.int32)
+        self.indptr = np.searchsorted(uniq // n, np.arange(n + 1)).astype(np.int32)
+        DD = D * D
+        self.scatter = (inverse[:, None] * DD + np.arange(DD)[None, :]).ravel()
         self.sign = bs
         self.edge = be
-        # gradient scatter: +b_j at var j, −b_i at var i
-        self.gj = vj
+        self.gj = vj  # gradient scatter: +b_j at var j, −b_i at var i
         self.gi = vi
 
     def matrix(self, B: Array) -> sp.csc_matrix:
+        D = self.D
         vals = (B[self.edge] * self.sign[:, None, None]).ravel()
-        data = np.bincount(self.inverse, weights=vals, minlength=self.nnz)
-        nv = self.n * self.D
-        # H is symmetric, so its CSR arrays are also valid CSC arrays.
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=(nv, nv))
+        data = np.bincount(self.scatter, weights=vals, minlength=self.nnzb * D * D).reshape(-1, D, D)
+        nv = self.n * D
+        # H is symmetric, so the CSR form of its BSR is also its CSC form.
+        return sp.bsr_matrix((data, self.indices, self.indptr), shape=(nv, nv)).tocsr().T.tocsc()
 
     def gradient(self, bj: Array) -> Array:
         D = self.D
         nv = self.n * D
-        out = np.zeros(nv)
         okj = self.gj >= 0
         idx = (self.gj[okj, None] * D + np.arange(D)).ravel()
-        out += np.bincount(idx, weights=bj[okj].ravel(), minlength=nv)
+        out = np.bincount(idx, weights=bj[okj].ravel(), minlength=nv)
         oki = self.gi >= 0
         idx = (self.gi[oki, None] * D + np.arange(D)).ravel()
         out -= np.bincount(idx, weights=bj[oki].ravel(), minlength=nv)
-        if self.perm is not None:
-            permuted = np.empty_like(out)
-            permuted[self.perm] = out
-            return permuted
         return out
 
-    def unpermute(self, x: Array) -> Array:
-        """A solution in the stored order → the natural variable order."""
-        return x if self.perm is None else x[self.perm]
+
+def _node_order(perm_c: NDArray[np.int64], D: int) -> NDArray[np.int64]:
+    """A node (block) ordering from SuperLU's scalar column ordering: nodes sorted by their first scalar."""
+    pos = np.asarray(perm_c, dtype=np.int64).reshape(-1, D).min(axis=1)  # new position of each node's scalars
+    rank = np.empty(len(pos), dtype=np.int64)
+    rank[np.argsort(pos, kind="stable")] = np.arange(len(pos))
+    return rank
 
 
 def _linear_system(P: Array, ii: NDArray[np.int64], jj: NDArray[np.int64], Z: Array, kappa: Array, tau: Array,
@@ -184,7 +176,7 @@ def solve_chordal(
     initial: ArrayLike | None = None,
     *,
     max_iterations: int = 100,
-    rel_tol: float = 1e-7,
+    rel_tol: float = 1e-6,
     damping: float = 0.0,
     linear_solver: str = "splu_mmd",
     reuse_ordering: bool = True,
@@ -220,6 +212,7 @@ def solve_chordal(
     history = [cost]
     lam = float(damping)
     converged = False
+    ordered = False
     it = 0
     while it < max_iterations:
         it += 1
@@ -227,11 +220,19 @@ def solve_chordal(
         g = pat.gradient(bj)
         if lam > 0:
             H = H + sp.diags(lam * H.diagonal(), format="csc")
-        factor = spd_factor(H, linear_solver, natural=pat.perm is not None)
-        dx = pat.unpermute(factor.solve(-g))
-        if reuse_ordering and pat.perm is None and linear_solver == "splu_mmd":
-            # Keep SuperLU's symmetric ordering: later H are assembled already permuted (NATURAL order).
-            pat = _Pattern(a.ii, a.jj, var, D, perm=np.asarray(factor.perm_c, dtype=np.int64))
+        factor = spd_factor(H, linear_solver, natural=ordered)
+        dx = factor.solve(-g)
+        if reuse_ordering and not ordered and linear_solver == "splu_mmd":
+            # Keep SuperLU's fill-reducing ordering (at node level): renumber the free nodes so that later
+            # systems are assembled already permuted and factorised in NATURAL order.
+            rank = _node_order(factor.perm_c, D)
+            dx_nodes = dx.reshape(-1, D)
+            dx = np.empty_like(dx_nodes)
+            dx[rank] = dx_nodes
+            dx = dx.ravel()
+            var = np.where(var >= 0, rank[np.maximum(var, 0)], -1)
+            pat = _Pattern(a.ii, a.jj, var, D)
+            ordered = True
             factor = None
         Pn = _apply(P, var, dx, dim)
         Bn, bjn, cn = _linear_system(Pn, a.ii, a.jj, Z, kappa, tau, dim)
