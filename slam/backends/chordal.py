@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration import geometry as geo
 from slam.graph.costs import chordal_residuals, chordal_weights
-from slam.graph.posegraph import PoseGraph
+from slam.graph.posegraph import GraphError, PoseGraph
 
 from .linsolve import spd_factor
 
@@ -196,7 +196,7 @@ def solve_chordal(
     D = graph.dof
     P = np.array(graph.poses if initial is None else initial, dtype=float)
     if P.shape != (graph.num_nodes, 4, 4) or not np.all(np.isfinite(P)):
-        raise ValueError(f"initial poses must be a finite ({graph.num_nodes}, 4, 4) array")
+        raise GraphError(f"initial poses must be a finite ({graph.num_nodes}, 4, 4) array")
     a = graph.edge_arrays()
     kappa, tau = chordal_weights(graph)
     n = graph.num_nodes

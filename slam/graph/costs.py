@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .posegraph import EdgeArrays, PoseGraph
+from .posegraph import EdgeArrays, GraphError, PoseGraph
 
 Array = NDArray[np.float64]
 
@@ -66,7 +66,7 @@ def sesync_objective(graph: PoseGraph, poses: ArrayLike | None = None) -> float:
     """SE-Sync objective of *poses* ``(N, 4, 4)`` (default: the graph's node poses) on *graph*."""
     P = graph.poses if poses is None else np.asarray(poses, dtype=float)
     if not np.all(np.isfinite(P)):
-        raise ValueError("every node needs a pose to evaluate the objective")
+        raise GraphError("every node needs a pose to evaluate the objective")
     kappa, tau = chordal_weights(graph)
     ER, et = chordal_residuals(P, graph.edge_arrays(), graph.dim)
     return float(np.sum(kappa * np.einsum("mab,mab->m", ER, ER)) + np.sum(tau * np.einsum("ma,ma->m", et, et)))
