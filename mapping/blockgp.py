@@ -39,7 +39,9 @@ def block_gp_predict(
     kern = hyp.kernel
     nb = max(1, -(-n_beams // block))
     sblk = np.minimum(s_beam // block, nb - 1).astype(np.int64)
-    used, qb = np.unique(sblk, return_inverse=True)  # only blocks that hold test points
+    present = np.bincount(sblk, minlength=nb) > 0  # only blocks that hold test points
+    used = np.flatnonzero(present)
+    qb = (np.cumsum(present) - 1)[sblk]
     lo = used * block - overlap
     hi = (used + 1) * block + overlap
     order = np.argsort(x_beam, kind="stable")
@@ -55,9 +57,11 @@ def block_gp_predict(
     yb = np.where(tmask, y[tidx], 0.0)
     dx = Xb[:, :, None, 0] - Xb[:, None, :, 0]
     dy = Xb[:, :, None, 1] - Xb[:, None, :, 1]
-    K = kern.of_distance(np.sqrt(dx * dx + dy * dy))
-    pair = tmask[:, :, None] & tmask[:, None, :]
-    K = np.where(pair, K, 0.0)
+    dx *= dx
+    dy *= dy
+    dx += dy
+    K = kern.of_distance_inplace(np.sqrt(dx, out=dx))
+    K *= tmask[:, :, None] & tmask[:, None, :]
     ii = np.arange(P)
     K[:, ii, ii] += np.where(tmask, hyp.sigma_n**2, 1.0)  # padding rows: identity, uncoupled
     Kinv = np.linalg.inv(K)  # (nu, P, P)
@@ -66,7 +70,10 @@ def block_gp_predict(
     Xg = Xb[qb]  # (m, P, 2)
     dx = Xs[:, None, 0] - Xg[:, :, 0]
     dy = Xs[:, None, 1] - Xg[:, :, 1]
-    Ks = kern.of_distance(np.sqrt(dx * dx + dy * dy))
+    dx *= dx
+    dy *= dy
+    dx += dy
+    Ks = kern.of_distance_inplace(np.sqrt(dx, out=dx))
     Ks *= tmask[qb]
     mean = np.einsum("mp,mp->m", Ks, alpha[qb])
     KsKinv = np.matmul(Ks[:, None, :], Kinv[qb])[:, 0, :]  # (m, P): batched row-vector products

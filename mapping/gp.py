@@ -70,6 +70,26 @@ class MaternKernel:
         p, _ = _poly_and_dpoly(self.nu, s)
         return self.variance * p * np.exp(-s)
 
+    def of_distance_inplace(self, r: Array) -> Array:
+        """:meth:`of_distance` overwriting the float64 array *r* (fewer temporaries on hot paths)."""
+        s = r
+        s *= np.sqrt(2.0 * self.nu) / self.length_scale
+        e = np.exp(-s)
+        if self.nu == 1.5:
+            coef = (1.0,)
+        elif self.nu == 2.5:
+            coef = (1.0 / 3.0, 1.0)
+        else:
+            coef = (1.0 / 15.0, 0.4, 1.0)
+        t = s * coef[0]
+        for c in coef[1:]:  # Horner: P(s) = 1 + s·(c_k + s·(…))
+            t += c
+            t *= s
+        t += 1.0
+        t *= e
+        t *= self.variance
+        return t
+
     def with_grad(self, r: Array) -> tuple[Array, Array]:
         """(k, ∂k/∂log ℓ) for distances *r*; ∂k/∂log σf is simply 2k."""
         s = np.sqrt(2.0 * self.nu) * np.asarray(r, dtype=float) / self.length_scale

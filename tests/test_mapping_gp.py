@@ -86,3 +86,11 @@ def test_kernel_cutoff_is_tail_bound():
     k = MaternKernel(3.5, 1.9, 8.13)
     c = k.cutoff(1e-6)
     assert k.of_distance(np.array(c * 1.001)) < 1e-6 * k.variance < k.of_distance(np.array(c * 0.99))
+
+
+@pytest.mark.parametrize("nu", [1.5, 2.5, 3.5])
+def test_inplace_kernel_equals_kernel(nu, rng):
+    """The in-place Horner evaluation used on hot paths equals the reference kernel formula."""
+    k = MaternKernel(nu, 0.7, 2.3)
+    r = rng.uniform(0, 5, 1000)
+    np.testing.assert_allclose(k.of_distance_inplace(r.copy()), k.of_distance(r), rtol=1e-13, atol=1e-15)
