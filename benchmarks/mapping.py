@@ -171,6 +171,24 @@ def bench_recompose(frames, res: float, n_submaps: int = 100, seed: int = 5) -> 
             "initial_placement_s": first, "grid": list(geom.shape), "observed_cells": int(m.observed.sum())}
 
 
+def reference_maps() -> dict:
+    """AUC (our map_roc) of the Fast-GPOM authors' own simple_rooms output maps (GPL data, read in place),
+    registered to the ground truth by the shift in ../shared/data/fastgpom/SOURCE.md."""
+    from scipy.io import loadmat
+
+    from mapping.mapserver import read_map_server
+
+    base = REPO.parent / "shared" / "data" / "fastgpom" / "data_set" / "map"
+    gt = read_map_server(STDR / "simple_rooms.yaml")
+    h, w = gt.shape
+    out = {}
+    for key, rel in (("fastgpom", "fast_gpom/stdr_simple_rooms.map.mat"), ("gpom", "gpom/simple_rooms.map.mat")):
+        if (base / rel).exists():
+            prob = loadmat(base / rel)["prob_map"][149 : 149 + h, 100 : 100 + w]
+            out[key] = float(map_roc(prob, gt.classes)[2])
+    return {"simple_rooms_auc": out, "paper_auc_fastgpom": PAPER_AUC["simple_rooms"]}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=6000, help="scans simulated per world (one coverage tour)")
@@ -190,6 +208,7 @@ def main() -> None:
         result["worlds"][name] = r
         if res == 0.05:
             frames_005 = frames
+    result["reference_code_maps"] = reference_maps()
     if frames_005 is not None:
         result["recompose"] = bench_recompose(frames_005, 0.05)
         log(f"recompose: {result['recompose']}")
