@@ -177,3 +177,30 @@ def test_cli_map_and_eval(tmp_path):
     o = resample_to_grid(m.observed.astype(float), np.ones_like(m.observed), m.origin, m.resolution, gt.shape,
                          gt.origin[:2], gt.resolution)
     assert map_roc(np.where(o == 1, p, np.nan), gt.classes)[2] > 0.9
+
+
+def test_cli_map_tum_poses_equal_ground_truth(tmp_path):
+    """`slam map --poses FILE.tum` with the simulator's ground truth written as TUM builds the same map as
+    `--poses ground_truth` (stamps matched to scans)."""
+    from typer.testing import CliRunner
+
+    from evaluation.sim import LASER_PRESETS, load_world
+    from evaluation.sim.simulate import simulate, write_simulated_log
+    from slam.cli import app
+    from slam.trajectory_io import Trajectory, write_tum
+
+    world = load_world("rooms", 0.05, seed=4)
+    sim = simulate(world, n_scans=12, spec=LASER_PRESETS["fastgpom"], seed=4)
+    log = tmp_path / "sim.mcap"
+    write_simulated_log(sim, log)
+    write_tum(tmp_path / "gt.tum", Trajectory(sim.stamps, sim.ground_truth))
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("gp:\n  hyperparameters: fixed\n")
+    runner = CliRunner()
+    for name, poses in (("a", "ground_truth"), ("b", str(tmp_path / "gt.tum"))):
+        r = runner.invoke(app, ["map", str(log), "--out", str(tmp_path / name), "--poses", poses, "--config", str(cfg),
+                                "--every", "3"])
+        assert r.exit_code == 0, r.output
+    a, b = load_npz(tmp_path / "a" / "map.npz"), load_npz(tmp_path / "b" / "map.npz")
+    assert a.geometry == b.geometry
+    np.testing.assert_allclose(a.probability, b.probability, atol=1e-9)
