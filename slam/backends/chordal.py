@@ -15,9 +15,9 @@ normal-equation block (derived from the slides' J_j; ``[t]×`` the skew matrix o
   ``JᵀΩe = [τ R_i e_t ; τ [t]× R_i e_t + κ g]`` with ``g = vee(A − Aᵀ)``, ``A = I − R_i R̃ R_jᵀ``;
 * 2D: the same with ``[t]× → S t`` (S the 90° rotation) and ``g = A₁₀ − A₀₁``.
 
-The blocks depend on t_j only, so the sparsity pattern (and its CSC index arrays) is computed once; each
-iteration only scatters new values with ``np.bincount``. The linear system is solved by
-:func:`slam.backends.linsolve.spd_solve`. Levenberg damping (``H + λ diag H``) is optional and also switched
+The blocks depend on t_j only, so the sparsity pattern (BSR block index arrays) is computed once, with the
+free nodes numbered in a fill-reducing (minimum-degree) order of the block graph; each iteration only scatters
+new values with ``np.bincount`` and factorises with SuperLU (:func:`slam.backends.linsolve.spd_factor`). Levenberg damping (``H + λ diag H``) is optional and also switched
 on automatically when a Gauss-Newton step increases the cost.
 """
 
@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
 from registration import geometry as geo
@@ -104,12 +105,15 @@ class _Pattern:
         return out
 
 
-def _node_order(perm_c: NDArray[np.int64], D: int) -> NDArray[np.int64]:
-    """A node (block) ordering from SuperLU's scalar column ordering: nodes sorted by their first scalar."""
-    pos = np.asarray(perm_c, dtype=np.int64).reshape(-1, D).min(axis=1)  # new position of each node's scalars
-    rank = np.empty(len(pos), dtype=np.int64)
-    rank[np.argsort(pos, kind="stable")] = np.arange(len(pos))
-    return rank
+def _block_ordering(pat: "_Pattern") -> NDArray[np.int64]:
+    """Fill-reducing node ordering: SuperLU's minimum-degree ordering (MMD on AᵀA + A) of the n×n block
+    graph, computed on a diagonally dominant stand-in with H's block pattern (cheap: one scalar per block).
+    Returns the new position of every free node."""
+    n = pat.n
+    S = sp.csc_matrix((np.ones(pat.nnzb), pat.indices, pat.indptr), shape=(n, n)).T.tocsc()
+    S = S + sp.diags(np.asarray(S.sum(axis=1)).ravel() + 1.0)
+    lu = spla.splu(S.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return np.asarray(lu.perm_c, dtype=np.int64)
 
 
 def _linear_system(P: Array, ii: NDArray[np.int64], jj: NDArray[np.int64], Z: Array, kappa: Array, tau: Array,
@@ -179,7 +183,7 @@ def solve_chordal(
     rel_tol: float = 1e-6,
     damping: float = 0.0,
     linear_solver: str = "splu_mmd",
-    reuse_ordering: bool = True,
+    block_ordering: bool = True,
 ) -> ChordalResult:
     """Minimise the SE-Sync objective by chordal Gauss-Newton from *initial* poses ``(N, 4, 4)``.
 
@@ -187,8 +191,8 @@ def solve_chordal(
     initial Levenberg λ (0 = pure Gauss-Newton). After each accepted step the next decrease is predicted from
     the Newton decrement ``½ gᵀH⁻¹g`` with the factor just computed (one triangular solve, no new
     factorisation); the solver also stops when that predicted relative decrease is below *rel_tol*.
-    *reuse_ordering*: the fill-reducing ordering of the first factorisation is kept and H is assembled
-    directly in that order afterwards (the sparsity pattern never changes). Robust kernels on edges are ignored (the SE-Sync objective
+    *block_ordering*: a fill-reducing ordering is computed once on the block (node) graph and H is assembled
+    directly in that order (the sparsity pattern never changes), so no factorisation recomputes one. Robust kernels on edges are ignored (the SE-Sync objective
     has none); use the GTSAM back end for robust estimation.
     """
     t0 = time.perf_counter()
@@ -205,6 +209,14 @@ def solve_chordal(
     var = np.full(n, -1, dtype=np.int64)
     var[~fixed] = np.arange(int((~fixed).sum()))
     pat = _Pattern(a.ii, a.jj, var, D)
+    ordered = False
+    if block_ordering and linear_solver == "splu_mmd" and pat.n > 0:
+        # Order the free nodes once (fill-reducing, on the block graph) and number them in that order, so
+        # every H is assembled already permuted and factorised without a new ordering.
+        rank = _block_ordering(pat)
+        var = np.where(var >= 0, rank[np.maximum(var, 0)], -1)
+        pat = _Pattern(a.ii, a.jj, var, D)
+        ordered = True
     Z = a.measurements
 
     B, bj, cost = _linear_system(P, a.ii, a.jj, Z, kappa, tau, dim)
@@ -212,7 +224,6 @@ def solve_chordal(
     history = [cost]
     lam = float(damping)
     converged = False
-    ordered = False
     it = 0
     while it < max_iterations:
         it += 1
@@ -222,18 +233,6 @@ def solve_chordal(
             H = H + sp.diags(lam * H.diagonal(), format="csc")
         factor = spd_factor(H, linear_solver, natural=ordered)
         dx = factor.solve(-g)
-        if reuse_ordering and not ordered and linear_solver == "splu_mmd":
-            # Keep SuperLU's fill-reducing ordering (at node level): renumber the free nodes so that later
-            # systems are assembled already permuted and factorised in NATURAL order.
-            rank = _node_order(factor.perm_c, D)
-            dx_nodes = dx.reshape(-1, D)
-            dx = np.empty_like(dx_nodes)
-            dx[rank] = dx_nodes
-            dx = dx.ravel()
-            var = np.where(var >= 0, rank[np.maximum(var, 0)], -1)
-            pat = _Pattern(a.ii, a.jj, var, D)
-            ordered = True
-            factor = None
         Pn = _apply(P, var, dx, dim)
         Bn, bjn, cn = _linear_system(Pn, a.ii, a.jj, Z, kappa, tau, dim)
         if cn > cost and cost > 0:  # reject: increase the damping (Levenberg) and retry
