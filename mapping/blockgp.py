@@ -54,26 +54,29 @@ def block_gp_predict(
     tmask = np.arange(P)[None, :] < cnt[:, None]
     tidx = order[np.minimum(pos, len(order) - 1)]
     Xb = X[tidx]  # (nu, P, 2)
+    # kernel entries in float32 (relative error ~1e-7·σf², far below σn²); solves in float64
+    Xb32 = Xb.astype(np.float32)
     yb = np.where(tmask, y[tidx], 0.0)
-    dx = Xb[:, :, None, 0] - Xb[:, None, :, 0]
-    dy = Xb[:, :, None, 1] - Xb[:, None, :, 1]
+    dx = Xb32[:, :, None, 0] - Xb32[:, None, :, 0]
+    dy = Xb32[:, :, None, 1] - Xb32[:, None, :, 1]
     dx *= dx
     dy *= dy
     dx += dy
-    K = kern.of_distance_inplace(np.sqrt(dx, out=dx))
+    K = kern.of_distance_inplace(np.sqrt(dx, out=dx)).astype(np.float64)
     K *= tmask[:, :, None] & tmask[:, None, :]
     ii = np.arange(P)
     K[:, ii, ii] += np.where(tmask, hyp.sigma_n**2, 1.0)  # padding rows: identity, uncoupled
     Kinv = np.linalg.inv(K)  # (nu, P, P)
     alpha = np.einsum("bij,bj->bi", Kinv, yb)
     # kernel rows of every test point to its block's training points, in one gather
-    Xg = Xb[qb]  # (m, P, 2)
-    dx = Xs[:, None, 0] - Xg[:, :, 0]
-    dy = Xs[:, None, 1] - Xg[:, :, 1]
+    Xg = Xb32[qb]  # (m, P, 2)
+    Xs32 = Xs.astype(np.float32)
+    dx = Xs32[:, None, 0] - Xg[:, :, 0]
+    dy = Xs32[:, None, 1] - Xg[:, :, 1]
     dx *= dx
     dy *= dy
     dx += dy
-    Ks = kern.of_distance_inplace(np.sqrt(dx, out=dx))
+    Ks = kern.of_distance_inplace(np.sqrt(dx, out=dx)).astype(np.float64)
     Ks *= tmask[qb]
     mean = np.einsum("mp,mp->m", Ks, alpha[qb])
     KsKinv = np.matmul(Ks[:, None, :], Kinv[qb])[:, 0, :]  # (m, P): batched row-vector products

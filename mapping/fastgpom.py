@@ -57,26 +57,26 @@ def fan_regions(bs: BeamSamples, x: Array, y: Array, outer_margin: float
     if len(a) < 2:
         return A, B, sector
     outer = bs.outer + np.where(bs.hit, outer_margin, 0.0)
-    x = np.ravel(x)
-    y = np.ravel(y)
+    # float32 is ample for classification (1e-7 relative ≈ µm at 4 m) and halves the memory traffic
+    x = np.ravel(x).astype(np.float32)
+    y = np.ravel(y).astype(np.float32)
     rho2 = x * x + y * y
-    cand = np.flatnonzero(rho2 < float(outer.max()) ** 2)  # only cells within the longest beam
+    cand = np.flatnonzero(rho2 < np.float32(outer.max()) ** 2)  # only cells within the longest beam
     xc, yc = x[cand], y[cand]
     phi = np.arctan2(yc, xc)
-    fov = (phi >= a[0]) & (phi <= a[-1])
+    a32 = a.astype(np.float32)
+    fov = (phi >= a32[0]) & (phi <= a32[-1])
     cand, xc, yc, phi = cand[fov], xc[fov], yc[fov], phi[fov]
-    i = np.clip(np.searchsorted(a, phi, "right") - 1, 0, len(a) - 2)
-    # ray/edge crossing: ρ_ring = (v_i × e)/(u × e) with unnormalised u = (x, y) gives ρ_ring/ρ
+    i = np.clip(np.searchsorted(a32, phi, "right") - 1, 0, len(a) - 2)
     ca, sa = np.cos(a), np.sin(a)
-    c0, s0, c1, s1 = ca[i], sa[i], ca[i + 1], sa[i + 1]
 
     def inside(r: Array) -> NDArray[np.bool_]:
-        r0, r1 = r[i], r[i + 1]
-        ex, ey = r1 * c1 - r0 * c0, r1 * s1 - r0 * s0
-        num = r0 * (c0 * ey - s0 * ex)
-        den = xc * ey - yc * ex  # = ρ (u × e)
-        # ρ < ρ_ring  ⇔  ρ·(u×e) < v×e when u×e > 0 (the fan edges are traversed counter-clockwise)
-        return np.where(den > 0, den < num, (xc * xc + yc * yc) < np.minimum(r0, r1) ** 2)
+        # edge e_i = v_{i+1} − v_i of the ring; the cell is inside iff ρ·(u × e_i) < v_i × e_i, i.e.
+        # x·e_y − y·e_x < v_i × e_i (u × e_i ≥ 0 inside sector i: the fan is counter-clockwise)
+        ex = r[1:] * ca[1:] - r[:-1] * ca[:-1]
+        ey = r[1:] * sa[1:] - r[:-1] * sa[:-1]
+        num = (r[:-1] * (ca[:-1] * ey - sa[:-1] * ex)).astype(np.float32)
+        return xc * ey.astype(np.float32)[i] - yc * ex.astype(np.float32)[i] < num[i]
 
     a_in = inside(bs.inner)
     b_in = inside(outer) & ~a_in

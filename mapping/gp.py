@@ -71,9 +71,9 @@ class MaternKernel:
         return self.variance * p * np.exp(-s)
 
     def of_distance_inplace(self, r: Array) -> Array:
-        """:meth:`of_distance` overwriting the float64 array *r* (fewer temporaries on hot paths)."""
+        """:meth:`of_distance` overwriting the float array *r* (fewer temporaries on hot paths; keeps r's dtype)."""
         s = r
-        s *= np.sqrt(2.0 * self.nu) / self.length_scale
+        s *= r.dtype.type(np.sqrt(2.0 * self.nu) / self.length_scale)
         e = np.exp(-s)
         if self.nu == 1.5:
             coef = (1.0,)
@@ -87,7 +87,7 @@ class MaternKernel:
             t *= s
         t += 1.0
         t *= e
-        t *= self.variance
+        t *= r.dtype.type(self.variance)
         return t
 
     def with_grad(self, r: Array) -> tuple[Array, Array]:
