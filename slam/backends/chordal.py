@@ -155,6 +155,29 @@ def _linear_system(P: Array, ii: NDArray[np.int64], jj: NDArray[np.int64], Z: Ar
     return B, b, cost
 
 
+def _pcg(H: sp.csc_matrix, rhs: Array, factor, rtol: float, maxiter: int) -> Array | None:  # type: ignore[no-untyped-def]
+    """Preconditioned conjugate gradients on ``H x = rhs`` (preconditioner: an earlier factor of a nearby H),
+    to relative residual *rtol*; None when *maxiter* iterations do not reach it."""
+    x = factor.solve(rhs)
+    r = rhs - H @ x
+    target = rtol * float(np.linalg.norm(rhs))
+    z = factor.solve(r)
+    p = z.copy()
+    rz = float(r @ z)
+    for _ in range(maxiter):
+        if float(np.linalg.norm(r)) <= target:
+            return x
+        Hp = H @ p
+        alpha = rz / float(p @ Hp)
+        x += alpha * p
+        r -= alpha * Hp
+        z = factor.solve(r)
+        rz_new = float(r @ z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x if float(np.linalg.norm(r)) <= target else None
+
+
 def _apply(P: Array, var: NDArray[np.int64], dx: Array, dim: int) -> Array:
     """X_k ← v2t(Δx_k) · X_k for every free node (left, world-frame perturbation)."""
     D = 3 if dim == 2 else 6
@@ -184,6 +207,8 @@ def solve_chordal(
     damping: float = 0.0,
     linear_solver: str = "splu_mmd",
     block_ordering: bool = True,
+    forcing: float = 0.1,
+    max_pcg: int = 10,
 ) -> ChordalResult:
     """Minimise the SE-Sync objective by chordal Gauss-Newton from *initial* poses ``(N, 4, 4)``.
 
@@ -192,7 +217,11 @@ def solve_chordal(
     the Newton decrement ``½ gᵀH⁻¹g`` with the factor just computed (one triangular solve, no new
     factorisation); the solver also stops when that predicted relative decrease is below *rel_tol*.
     *block_ordering*: a fill-reducing ordering is computed once on the block (node) graph and H is assembled
-    directly in that order (the sparsity pattern never changes), so no factorisation recomputes one. Robust kernels on edges are ignored (the SE-Sync objective
+    directly in that order (the sparsity pattern never changes), so no factorisation recomputes one.
+    *forcing* > 0 makes it an inexact Newton method (Dembo, Eisenstat, Steihaug, SIAM J. Numer. Anal. 1982):
+    after the first factorisation, a system is solved by conjugate gradients preconditioned with the last
+    factor only to relative residual *forcing* (at most *max_pcg* iterations, else it is refactorised).
+    Robust kernels on edges are ignored (the SE-Sync objective
     has none); use the GTSAM back end for robust estimation.
     """
     t0 = time.perf_counter()
@@ -224,6 +253,7 @@ def solve_chordal(
     history = [cost]
     lam = float(damping)
     converged = False
+    factor = None
     it = 0
     while it < max_iterations:
         it += 1
@@ -231,8 +261,12 @@ def solve_chordal(
         g = pat.gradient(bj)
         if lam > 0:
             H = H + sp.diags(lam * H.diagonal(), format="csc")
-        factor = spd_factor(H, linear_solver, natural=ordered)
-        dx = factor.solve(-g)
+        dx = None
+        if factor is not None and forcing > 0:
+            dx = _pcg(H, -g, factor, forcing, max_pcg)
+        if dx is None:
+            factor = spd_factor(H, linear_solver, natural=ordered)
+            dx = factor.solve(-g)
         Pn = _apply(P, var, dx, dim)
         Bn, bjn, cn = _linear_system(Pn, a.ii, a.jj, Z, kappa, tau, dim)
         if cn > cost and cost > 0:  # reject: increase the damping (Levenberg) and retry
