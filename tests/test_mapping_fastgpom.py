@@ -154,3 +154,23 @@ def test_map_quality_on_synthetic_room():
     assert roc_auc(mf.probability[sel], occ[sel]) >= 0.95
     mc = cg.to_map()
     assert roc_auc(mc.probability[sel], occ[sel]) >= 0.9
+
+
+def test_region_a_prior_is_configurable():
+    """After one scan every region-A cell holds exactly the configured (μ, σ²) of region A, e.g. (−1, 0.2),
+    and region-B cells hold GP estimates with variance below the prior variance σf²."""
+    geom, occ, _ = box_world()
+    cfg = MappingConfig()
+    cfg.fastgpom.region_a_variance = 0.2
+    fg = FastGPOM(geom, cfg, hyperparameters=HYP)
+    frame = cast(geom, occ, (-1.0, 0.0, 0.2))
+    rows, cols, sel, mean, var = fg.local_estimate(frame, xytheta_to_matrix(-1.0, 0.0, 0.2))
+    fg.update(frame, xytheta_to_matrix(-1.0, 0.0, 0.2))
+    m = fg.to_map()
+    a_cells = sel[(mean == -1.0) & (var == 0.2)]
+    assert len(a_cells) > 0.5 * len(sel)
+    iy, ix = np.unravel_index(a_cells, (rows.stop - rows.start, cols.stop - cols.start))
+    np.testing.assert_allclose(m.mean[rows, cols][iy, ix], -1.0)
+    np.testing.assert_allclose(m.variance[rows, cols][iy, ix], 0.2)
+    b = var != 0.2
+    assert np.all(var[b] < HYP.sigma_f**2)
