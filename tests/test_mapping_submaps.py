@@ -6,8 +6,6 @@ import numpy as np
 import pytest
 
 from mapping.fastgpom import FastGPOM
-from mapping.gp import GPHyperparameters
-from mapping.grid import GridGeometry
 from mapping.submaps import SubmapFuser
 from registration.geometry import xytheta_to_matrix
 from tests.test_mapping_fastgpom import HYP, box_world, cast
