@@ -112,7 +112,19 @@ def memory_child(name: str, which: str) -> None:
         solve_chordal(g, P0)
     else:
         optimize(g, P0)
-    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)  # Linux: KiB
+    print(peak_rss_mib())
+
+
+def peak_rss_mib() -> float:
+    """Peak resident set size of this process in MiB: VmHWM from /proc (reset by exec, unlike ru_maxrss, which a
+    child started by fork + exec inherits from its parent), else ru_maxrss."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def main() -> None:
