@@ -4,11 +4,11 @@ Both solvers return ``target_T_source``: the 4×4 pose that maps source points `
 their matches ``p_i`` in the least-squares sense, ``min Σ w_i ‖R p'_i + t − p_i‖²``.
 Planar inputs ``(N, 2)`` give a planar 4×4 pose (z = 0, rotation about z only).
 
-* :func:`align_svd` — Arun, Huang & Blostein (1987) / Umeyama (1991, eq. 39–41): barycentric
+* :func:`align_svd` — Arun, Huang & Blostein (1987) / Umeyama (1991): barycentric
   centring, ``H = Σ w_i q'_i q_iᵀ``, ``H = UΣVᵀ``, ``R = V diag(1, …, det(VUᵀ)) Uᵀ`` (the
   reflection fix), ``t = p_m − R p'_m``.
 * :func:`align_horn` — Horn (1987), "Closed-form solution of absolute orientation using unit
-  quaternions", §4: the rotation is the eigenvector of the largest eigenvalue of the symmetric
+  quaternions": the rotation is the eigenvector of the largest eigenvalue of the symmetric
   4×4 matrix ``N`` built from ``H``. It is an independent check of :func:`align_svd`.
 """
 
@@ -62,7 +62,7 @@ def weighted_centroids(source: Array, target: Array, w: Array) -> tuple[Array, A
 
 
 def cross_covariance(source: Array, target: Array, w: Array) -> tuple[Array, Array, Array]:
-    """``(H, p'_m, p_m)`` with ``H = Σ w_i (p'_i − p'_m)(p_i − p_m)ᵀ`` (Arun et al. 1987, eq. 11)."""
+    """``(H, p'_m, p_m)`` with ``H = Σ w_i (p'_i − p'_m)(p_i − p_m)ᵀ`` (Arun et al. 1987)."""
     pm_s, pm_t = weighted_centroids(source, target, w)
     H = (source - pm_s).T @ ((target - pm_t) * w[:, None])
     return H, pm_s, pm_t
@@ -108,7 +108,7 @@ def align_svd(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = 
     V = Vt.T
     d = P.shape[1]
     D = np.ones(d)
-    # Reflection fix (Umeyama 1991, eq. 39): if det(VUᵀ) = −1 flip the axis of the smallest singular value.
+    # Reflection fix (Umeyama 1991): if det(VUᵀ) = −1 flip the axis of the smallest singular value.
     D[-1] = np.sign(np.linalg.det(V @ U.T)) or 1.0
     R = (V * D) @ U.T
     t = pm_t - R @ pm_s
@@ -116,7 +116,7 @@ def align_svd(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = 
 
 
 def horn_matrix(H: Array) -> Array:
-    """Horn's symmetric 4×4 matrix N of the 3×3 cross-covariance ``H`` (Horn 1987, eq. 35), (w, x, y, z) order."""
+    """Horn's symmetric 4×4 matrix N of the 3×3 cross-covariance ``H`` (Horn 1987), (w, x, y, z) order."""
     Sxx, Sxy, Sxz = H[0]
     Syx, Syy, Syz = H[1]
     Szx, Szy, Szz = H[2]
@@ -131,7 +131,7 @@ def horn_matrix(H: Array) -> Array:
 
 
 def align_horn(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None) -> Array:
-    """Weighted rigid transform ``target_T_source`` by Horn's unit-quaternion method (Horn 1987, §4).
+    """Weighted rigid transform ``target_T_source`` by Horn's unit-quaternion method (Horn 1987).
 
     The optimal rotation quaternion is the eigenvector of the largest eigenvalue of ``N(H)``.
     Planar inputs are embedded with z = 0; the rotation then comes out about z. Same inputs,

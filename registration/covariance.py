@@ -10,9 +10,9 @@ With ``Exp(δ) p ≈ p + ρ + φ × p`` the residual Jacobians at δ = 0 are, fo
   (Chen & Medioni 1992; the Hessian of the nearest-neighbour distance to a smooth surface).
 
 With f = ½ Σ w e² the Gauss-Newton Hessian is ∂²f/∂δ² = JᵀWJ (the Fisher information up to σ²),
-and ``Cov(δ) = σ² (∂²f/∂δ²)⁻¹`` (Bengtsson & Baerveldt 2003, eq. 4; the course's Cov(x) = σ²(∂²f/∂x²)⁻¹).
+and ``Cov(δ) = σ² (∂²f/∂δ²)⁻¹`` (Bengtsson & Baerveldt, RAS 2003; the course's Cov(x) = σ²(∂²f/∂x²)⁻¹).
 The residual ``Res = Σ w e²`` is ~ σ² χ²(n − dof) for a correct alignment, n = scalar residuals
-(Förstner & Wrobel 2016, §4.6.8); the alignment is rejected when Res exceeds the threshold.
+(Förstner & Wrobel, Photogrammetric Computer Vision, 2016: variance-factor test); the alignment is rejected when Res exceeds the threshold.
 """
 
 from __future__ import annotations

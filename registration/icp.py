@@ -104,7 +104,7 @@ class IcpResult:
 
 def robust_weights(dist: Array, config: IcpConfig) -> Array:
     """Per-pair weights: 1 (``none``), 0/1 keeping the closest ``trim_fraction`` (``trim``), Huber
-    ``min(1, k/|r|)`` or Cauchy ``1/(1 + (r/k)²)`` with k = ``robust_scale`` (Zhang 1997, Table 1)."""
+    ``min(1, k/|r|)`` or Cauchy ``1/(1 + (r/k)²)`` with k = ``robust_scale`` (Zhang, IVC 1997)."""
     if config.robust == "none":
         return np.ones_like(dist)
     if config.robust == "trim":
@@ -223,7 +223,7 @@ def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: 
 
 def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None = None,
         config: IcpConfig | None = None) -> IcpResult:
-    """Point-to-point SVD-ICP of *source* onto *target* (Besl & McKay 1992, §IV).
+    """Point-to-point SVD-ICP of *source* onto *target* (Besl & McKay 1992).
 
     Args:
         source: ``(N, d)`` points in the source frame (m).

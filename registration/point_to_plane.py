@@ -1,8 +1,8 @@
 """Point-to-plane ICP (Chen & Medioni 1992) with PCA normals, for 3D LiDAR (2D works too).
 
 Each iteration minimises Σ w_i (n_iᵀ(T p'_i − q_i))² linearised about the current pose with a left
-increment ``T ← Exp(ξ) T`` (Low 2004, "Linear least-squares optimization for point-to-plane ICP",
-eq. 5–8): row i of the Jacobian is ``[n_iᵀ, (m_i × n_i)ᵀ]`` for the moved point m_i. Normals are
+increment ``T ← Exp(ξ) T`` (Low 2004, "Linear least-squares optimization for point-to-plane ICP"):
+row i of the Jacobian is ``[n_iᵀ, (m_i × n_i)ᵀ]`` for the moved point m_i. Normals are
 the eigenvectors of the smallest eigenvalue of the k-neighbour scatter matrix (Hoppe et al. 1992).
 """
 
