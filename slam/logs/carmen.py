@@ -665,7 +665,7 @@ class CarmenReader(LogReader):
                         continue
                     if t0[:1] == b"#":
                         continue
-                    if not _TAG_RE.match(t0):
+                    if t0 != b"ODOM" and not _TAG_RE.match(t0):
                         raise _fail(path, lineno, f"garbage line: expected a CARMEN message tag, got {_short(t0)}")
                     if t0 == b"ODOM":
                         if len(tokens) != 10:
