@@ -32,7 +32,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
 from registration import geometry as geo
-from slam.graph.costs import chordal_residuals, chordal_weights
+from slam.graph.costs import chordal_weights
 from slam.graph.posegraph import GraphError, PoseGraph
 
 from .linsolve import spd_factor
@@ -105,28 +105,35 @@ class _Pattern:
         return out
 
 
-def _block_ordering(pat: "_Pattern") -> NDArray[np.int64]:
-    """Fill-reducing node ordering: SuperLU's minimum-degree ordering (MMD on AᵀA + A) of the n×n block
-    graph, computed on a diagonally dominant stand-in with H's block pattern (cheap: one scalar per block).
+def _block_ordering(ii: NDArray[np.int64], jj: NDArray[np.int64], var: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Fill-reducing node ordering: SuperLU's minimum-degree ordering (MMD on AᵀA + A) of the block graph of
+    H (one scalar per node, on a diagonally dominant stand-in with H's block pattern, so it is cheap).
     Returns the new position of every free node."""
-    n = pat.n
-    S = sp.csc_matrix((np.ones(pat.nnzb), pat.indices, pat.indptr), shape=(n, n)).T.tocsc()
-    S = S + sp.diags(np.asarray(S.sum(axis=1)).ravel() + 1.0)
+    n = int(var.max()) + 1
+    vi = np.where(ii >= 0, var[np.maximum(ii, 0)], -1)
+    vj = var[jj]
+    ok = (vi >= 0) & (vj >= 0)
+    S = sp.coo_matrix((np.ones(int(ok.sum())), (vi[ok], vj[ok])), shape=(n, n)).tocsc()
+    S = S + S.T
+    S = S + sp.diags(np.asarray(abs(S).sum(axis=1)).ravel() + 1.0)
     lu = spla.splu(S.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return np.asarray(lu.perm_c, dtype=np.int64)
 
 
 def _linear_system(P: Array, ii: NDArray[np.int64], jj: NDArray[np.int64], Z: Array, kappa: Array, tau: Array,
                    dim: int) -> tuple[Array, Array, float]:
-    """Per-edge normal-equation block B (M, D, D), gradient b_j (M, D) and the total cost."""
-    from slam.graph.posegraph import EdgeArrays
-
-    ea = EdgeArrays(ii, jj, Z, np.empty((0,)), np.empty(0, np.int8))
-    ER, et = chordal_residuals(P, ea, dim)
+    """Per-edge normal-equation block B (M, D, D), gradient b_j (M, D) and the total cost (the residuals are
+    those of :func:`slam.graph.costs.chordal_residuals`, inlined to share the gathered poses)."""
+    Pi = P[np.maximum(ii, 0)]
+    if (ii < 0).any():
+        Pi[ii < 0] = np.eye(4)
+    Pj = P[jj]
+    Ri, ti = Pi[:, :dim, :dim], Pi[:, :dim, 3]
+    Rj, tj = Pj[:, :dim, :dim], Pj[:, :dim, 3]
+    RiT = np.swapaxes(Ri, 1, 2)
+    ER = RiT @ Rj - Z[:, :dim, :dim]
+    et = np.einsum("mab,mb->ma", RiT, tj - ti) - Z[:, :dim, 3]
     cost = float(np.sum(kappa * np.einsum("mab,mab->m", ER, ER)) + np.sum(tau * np.einsum("ma,ma->m", et, et)))
-    Ri = np.where((ii < 0)[:, None, None], np.eye(dim), P[np.maximum(ii, 0), :dim, :dim])
-    Rj = P[jj, :dim, :dim]
-    tj = P[jj, :dim, 3]
     w = np.einsum("mab,mb->ma", Ri, et)  # R_i e_t
     A = -(Ri @ Z[:, :dim, :dim] @ np.swapaxes(Rj, 1, 2))  # I − R_i R̃ R_jᵀ (identity added below)
     m = len(jj)
@@ -237,15 +244,14 @@ def solve_chordal(
     fixed[graph.anchor_indices()] = True
     var = np.full(n, -1, dtype=np.int64)
     var[~fixed] = np.arange(int((~fixed).sum()))
-    pat = _Pattern(a.ii, a.jj, var, D)
     ordered = False
-    if block_ordering and linear_solver == "splu_mmd" and pat.n > 0:
+    if block_ordering and linear_solver == "splu_mmd" and var.max() >= 0:
         # Order the free nodes once (fill-reducing, on the block graph) and number them in that order, so
         # every H is assembled already permuted and factorised without a new ordering.
-        rank = _block_ordering(pat)
+        rank = _block_ordering(a.ii, a.jj, var)
         var = np.where(var >= 0, rank[np.maximum(var, 0)], -1)
-        pat = _Pattern(a.ii, a.jj, var, D)
         ordered = True
+    pat = _Pattern(a.ii, a.jj, var, D)
     Z = a.measurements
 
     B, bj, cost = _linear_system(P, a.ii, a.jj, Z, kappa, tau, dim)
