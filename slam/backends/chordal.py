@@ -214,8 +214,8 @@ def solve_chordal(
     damping: float = 0.0,
     linear_solver: str = "splu_mmd",
     block_ordering: bool = True,
-    forcing: float = 0.1,
-    max_pcg: int = 10,
+    forcing: float = 1e-3,
+    max_pcg: int = 20,
 ) -> ChordalResult:
     """Minimise the SE-Sync objective by chordal Gauss-Newton from *initial* poses ``(N, 4, 4)``.
 
@@ -227,7 +227,9 @@ def solve_chordal(
     directly in that order (the sparsity pattern never changes), so no factorisation recomputes one.
     *forcing* > 0 makes it an inexact Newton method (Dembo, Eisenstat, Steihaug, SIAM J. Numer. Anal. 1982):
     after the first factorisation, a system is solved by conjugate gradients preconditioned with the last
-    factor only to relative residual *forcing* (at most *max_pcg* iterations, else it is refactorised).
+    factor to relative residual *forcing* (at most *max_pcg* iterations, else it is refactorised). A
+    preconditioned CG iteration costs two triangular solves, ~1/25-1/35 of a factorisation on city10000 and
+    sphere2500, and 1e-3 keeps the Gauss-Newton step count of exact solves there.
     Robust kernels on edges are ignored (the SE-Sync objective
     has none); use the GTSAM back end for robust estimation.
     """
