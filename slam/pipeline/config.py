@@ -27,6 +27,10 @@ class OdometryStageConfig(_Model):
     use_wheel_odometry: bool = True
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
+    # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
+    # at the odometry's relative pose (registration.covariance), with this residual σ and gate.
+    edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
+    edge_gate_m: float = Field(0.3, gt=0)
     # Noise floor added to the odometry covariance per keyframe edge: σ² = a + b·distance (translation)
     # and c + d·|angle| (rotation). Registration covariances treat the map as exact and are
     # optimistic; the floor keeps loop closures able to correct accumulated drift.
@@ -34,6 +38,13 @@ class OdometryStageConfig(_Model):
     floor_translation_per_m: float = Field(0.01, ge=0)
     floor_rotation_rad: float = Field(0.002, ge=0)
     floor_rotation_per_rad: float = Field(0.01, ge=0)
+    # Wheel odometry, when the log has it, also enters the graph as its own edge between keyframes
+    # (so registration-degenerate directions, e.g. along a corridor, fall back on the wheels):
+    # σ_xy = a·d + 1 mm, σ_θ = b·d + c·|Δθ| + 1 mrad for a step of length d (m) and turn Δθ (rad).
+    wheel_edges: bool = True
+    wheel_sigma_per_m: float = Field(0.1, gt=0)
+    wheel_sigma_rad_per_m: float = Field(0.08, gt=0)
+    wheel_sigma_rad_per_rad: float = Field(0.1, gt=0)
 
 
 class LoopConfig(_Model):
@@ -54,7 +65,8 @@ class LoopConfig(_Model):
     chi2_factor: float = Field(3.0, gt=0)
     min_fitness: float = Field(0.6, gt=0, le=1.0)
     max_rmse: float = Field(0.08, gt=0)
-    max_mahalanobis: float = Field(5.0, gt=0, description="consistency of a spatial closure with the estimate (σ units, after the radius)")
+    max_mahalanobis: float = Field(15.0, gt=0, description="consistency of a spatial closure with the estimate (σ units, after the radius)")
+    max_free_space_violation: float = Field(0.15, ge=0, le=1, description="2D: largest fraction of either scan's points inside the other's observed free space")
     descriptor_min_fitness: float = Field(0.8, gt=0, le=1.0)
     robust_kernel: Literal["none", "huber", "cauchy", "gm"] = "cauchy"
     robust_scale: float = Field(1.0, gt=0, description="kernel width in whitened units (σ)")

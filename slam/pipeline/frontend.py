@@ -1,10 +1,13 @@
 """Front end: per-scan odometry, keyframe selection and the odometry edges between keyframes.
 
 Poses here are robot-base poses ``world_T_base`` (4×4). The odometry source registers sensor
-frames; ``base_T_sensor`` converts. Each odometry edge's covariance is the compounded
-per-scan registration covariance (:func:`registration.geometry.compound_covariance`) plus a
-noise floor proportional to the motion (config ``odometry.floor_*``), because registration
-covariances treat the local map as exact and are optimistic.
+frames; ``base_T_sensor`` converts. Each odometry edge's covariance is the registration
+covariance σ²(∂²f/∂x²)⁻¹ of the keyframe's scan against the previous keyframe's scan at the
+odometry's relative pose (:func:`registration.icp.evaluate_alignment`, plane model, a-priori σ),
+the same for KISS-ICP and our ICP, plus a noise floor growing with the motion (config
+``odometry.floor_*``) because that covariance treats the previous scan as exact. When the edge
+cannot be evaluated (too few overlapping points) the per-scan covariances compounded along the
+way (:func:`registration.geometry.compound_covariance`) are used instead.
 """
 
 from __future__ import annotations
@@ -15,7 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import geometry as G
+from registration.config import IcpConfig
+from registration.errors import DegenerateInputError
 from registration.frame import Frame
+from registration.icp import IcpTarget, evaluate_alignment
 from registration.odometry import Odometry, OdometryStep
 from registration.voxel import voxel_downsample
 from slam.keyframes import KeyframeSelector
@@ -59,6 +65,16 @@ class OdometryEdge:
 
 
 @dataclass
+class WheelEdge:
+    """Relative pose ``i_T_j`` of the robot base between two keyframes from wheel odometry alone."""
+
+    i: int
+    j: int
+    measurement: Array
+    covariance: Array
+
+
+@dataclass
 class ScanTrack:
     """Per-scan bookkeeping to give every scan a pose after optimisation."""
 
@@ -79,6 +95,7 @@ class FrontEnd:
         self.track = ScanTrack()
         self._cov_since_kf: Array | None = None
         self._dof: int | None = None
+        self.wheel_edges: list[WheelEdge] = []
 
     def _floor(self, rel: Array) -> Array:
         c = self.config.odometry
@@ -86,6 +103,34 @@ class FrontEnd:
         ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
         st = c.floor_translation_m**2 + c.floor_translation_per_m**2 * dist
         sr = c.floor_rotation_rad**2 + c.floor_rotation_per_rad**2 * ang
+        if self._dof == 3:
+            return np.diag([st, st, sr])
+        return np.diag([st, st, st, sr, sr, sr])
+
+    def _edge_covariance(self, prev: Keyframe, kf: Keyframe, rel_base: Array) -> Array | None:
+        """Registration covariance of keyframe *kf* against *prev* at the odometry's relative pose (base frame)."""
+        c = self.config.odometry
+        if len(prev.points) < 10 or len(kf.points) < 10:
+            return None
+        rel_sensor = G.inverse(prev.base_T_sensor) @ rel_base @ kf.base_T_sensor
+        cfg = IcpConfig(gates=(c.edge_gate_m,), sigma=c.edge_sigma_m, covariance_model="plane", workers=1,
+                        normal_neighbors=8)
+        try:
+            res = evaluate_alignment(kf.points, IcpTarget(prev.points, normal_neighbors=8, workers=1), rel_sensor,
+                                     c.edge_gate_m, cfg)
+        except DegenerateInputError:
+            return None
+        if res.degenerate or not np.all(np.isfinite(res.covariance)):
+            return None
+        A = G.adjoint(kf.base_T_sensor, planar=self._dof == 3)
+        return A @ res.covariance @ A.T
+
+    def _wheel_covariance(self, rel: Array) -> Array:
+        c = self.config.odometry
+        d = float(np.linalg.norm(rel[:3, 3]))
+        ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
+        st = (c.wheel_sigma_per_m * d + 1e-3) ** 2
+        sr = (c.wheel_sigma_rad_per_m * d + c.wheel_sigma_rad_per_rad * ang + 1e-3) ** 2
         if self._dof == 3:
             return np.diag([st, st, sr])
         return np.diag([st, st, st, sr, sr, sr])
@@ -118,8 +163,13 @@ class FrontEnd:
             if self.keyframes:
                 prev = self.keyframes[-1]
                 rel = G.relative(prev.odom_pose, pose)
-                cov = self._cov_since_kf if self._cov_since_kf is not None else np.zeros((self._dof, self._dof))
+                cov = self._edge_covariance(prev, kf, rel)
+                if cov is None:
+                    cov = self._cov_since_kf if self._cov_since_kf is not None else np.zeros((self._dof, self._dof))
                 edge = OdometryEdge(prev.id, kf.id, rel, cov + self._floor(rel))
+                if c.wheel_edges and prev.frame.odom is not None and frame.odom is not None:
+                    wrel = G.relative(prev.frame.odom, frame.odom)
+                    self.wheel_edges.append(WheelEdge(prev.id, kf.id, wrel, self._wheel_covariance(wrel)))
             self.keyframes.append(kf)
             self._cov_since_kf = np.zeros((self._dof, self._dof))
             new_kf = kf

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from registration import geometry as G
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError
+from registration.frame import Frame
 from registration.icp import IcpTarget
 from registration.point_to_plane import icp_point_to_plane
 from slam.loops.descriptor import DescriptorIndex, PolarDescriptorConfig, polar_descriptor
@@ -58,6 +59,32 @@ class LoopStats:
     rejected_chi2: int = 0
     rejected_fitness: int = 0
     rejected_consistency: int = 0
+    rejected_free_space: int = 0
+
+
+def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 0.1, rel_margin: float = 0.02) -> float:
+    """Fraction of *points* (in *frame*'s sensor frame) lying in the free space *frame*'s beams saw.
+
+    A point at bearing φ and range r violates the scan when the beam at φ travelled beyond
+    ``r + margin + rel_margin·r`` (returned farther, or returned nothing): the two scans cannot
+    both be right — the negative-information test of 2D scan matching (e.g. Olson, "Real-time
+    correlative scan matching", ICRA 2009, §III-B). Points outside the field of view are ignored.
+    Returns 0 when no point falls inside the field of view.
+    """
+    ang, rng = frame.angles, frame.ranges
+    if ang is None or rng is None or len(ang) < 2:
+        return 0.0
+    order = np.argsort(ang)
+    a, r_beam = ang[order], np.where(frame.no_return[order], frame.max_range, rng[order])
+    inc = float(np.median(np.diff(a)))
+    phi = np.arctan2(points_in_sensor[:, 1], points_in_sensor[:, 0])
+    r = np.hypot(points_in_sensor[:, 0], points_in_sensor[:, 1])
+    k = np.clip(np.rint((phi - a[0]) / inc).astype(np.int64), 0, len(a) - 1)
+    inside = np.abs(phi - a[k]) <= 0.5 * abs(inc) + 1e-9
+    if not np.any(inside):
+        return 0.0
+    viol = inside & (r_beam[k] > r + margin + rel_margin * r)
+    return float(viol.sum() / inside.sum())
 
 
 class LoopCloser:
@@ -139,6 +166,13 @@ class LoopCloser:
         T = res.transform
         if self.planar:
             T = G.xytheta_to_matrix(G.matrix_to_xytheta(T))
+            ki = keyframes[i]
+            # Negative information, both ways: neither scan may have points where the other saw free space.
+            v1 = free_space_violation(G.transform_points(T, kj.frame.points), ki.frame)
+            v2 = free_space_violation(G.transform_points(G.inverse(T), ki.frame.points), kj.frame)
+            if max(v1, v2) > c.max_free_space_violation:
+                self.stats.rejected_free_space += 1
+                return None
         if source == "spatial" and relative_cov is not None:
             innov = (G.se2_log(G.inverse(guess_sensor) @ T) if self.planar
                      else G.se3_log(G.inverse(guess_sensor) @ T))

@@ -115,6 +115,9 @@ def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | 
             else:
                 backend.add_keyframe(kf.id, backend.poses[edge.i] @ edge.measurement)
                 backend.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance)
+                if front.wheel_edges and front.wheel_edges[-1].j == kf.id:
+                    w = front.wheel_edges[-1]
+                    backend.add_odometry(w.i, w.j, w.measurement, w.covariance)
                 cov_since_closure = G.compound_covariance(cov_since_closure, edge.measurement, edge.covariance)
             t2 = time.perf_counter()
             new = closer.detect(front.keyframes, backend.poses, kf.id, cov_since_closure)

@@ -1,0 +1,101 @@
+"""End-to-end pipeline on a simulated log with ground truth: SLAM beats its odometry, closures are true,
+outputs are complete and readable, and a failing run leaves nothing behind."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+from registration import geometry as G
+from slam.cli import main
+from slam.logs import open_log
+from slam.pipeline.config import SlamConfig
+from slam.pipeline.run import run_slam
+from slam.trajectory_io import read_tum
+
+pytestmark = pytest.mark.xdist_group("pipeline")
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory):
+    """900 scans in the built-in corridor world (two loops), Fast-GPOM laser, drifting odometry."""
+    d = tmp_path_factory.mktemp("sim")
+    sim = simulate(load_world("corridor"), n_scans=900, spec=LASER_PRESETS["hokuyo_utm30"], seed=7)
+    path = d / "corridor.mcap"
+    write_simulated_log(sim, path)
+    return path, sim
+
+
+def _ate(poses, gt):
+    """RMS position error after the best rigid alignment of the first pose (both start at the origin frame)."""
+    A = gt[0] @ G.inverse(poses[0])
+    d = (A @ poses)[:, :2, 3] - gt[:, :2, 3]
+    return float(np.sqrt((d**2).sum(axis=1).mean()))
+
+
+@pytest.fixture(scope="module")
+def result(sim_log):
+    path, _ = sim_log
+    cfg = SlamConfig.model_validate({"mapping": {"enabled": False}})
+    return run_slam(open_log(path).frames(), cfg)
+
+
+def test_slam_is_accurate_and_does_not_degrade_odometry(result, sim_log):
+    """The SLAM trajectory is within 3 cm RMS of ground truth, at least twice better than the wheels, and
+    never worse than its own front end by more than 5 mm (closures may not distort a good odometry)."""
+    _, sim = sim_log
+    gt = sim.ground_truth
+    assert len(result.poses) == len(gt)
+    slam_err = _ate(result.poses, gt)
+    odo_err = _ate(result.odometry, gt)
+    wheel_err = _ate(result.wheel, gt)
+    assert slam_err < 0.03, (slam_err, odo_err, wheel_err)
+    assert slam_err < wheel_err / 2 and slam_err < odo_err + 0.005, (slam_err, odo_err, wheel_err)
+
+
+def test_accepted_loop_closures_agree_with_ground_truth(result, sim_log):
+    """Every accepted closure's measurement matches the true relative pose within 10 cm and 1°."""
+    _, sim = sim_log
+    assert len(result.loops) > 0
+    kf_gt = sim.ground_truth[[kf.scan_index for kf in result.keyframes]]
+    for lc in result.loops:
+        err = G.relative(lc.measurement, G.relative(kf_gt[lc.i], kf_gt[lc.j]))
+        assert np.linalg.norm(err[:2, 3]) < 0.10
+        assert abs(np.degrees(G.matrix_to_xytheta(err)[2])) < 1.0
+
+
+def test_slam_run_cli_writes_every_output(tmp_path, sim_log, capsys):
+    """`slam run` writes all outputs; trajectory.tum has one pose per scan; summary counts match."""
+    path, sim = sim_log
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:  # typer exits 0 on success
+        main(["run", str(path), "--out", str(out), "--odometry", "icp", "--quiet", "--max-scans", "400"])
+    assert exc.value.code in (0, None)
+    printed = capsys.readouterr().out
+    for name in ("trajectory.tum", "odometry.tum", "graph.g2o", "map.pgm", "map.yaml", "map.png", "variance.png",
+                 "map.npz", "result.mcap", "summary.json", "config.yaml", "node_stamps.txt"):
+        assert (out / name).stat().st_size > 0, name
+    tr = read_tum(out / "trajectory.tum")
+    assert len(tr) == 400
+    np.testing.assert_allclose(tr.stamps, sim.stamps[:400])
+    s = json.loads((out / "summary.json").read_text())
+    assert s["scans"] == 400 and f"scans: {s['scans']}" in printed
+    assert SlamConfig.from_yaml(out / "config.yaml").odometry.method == "icp"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_failed_run_leaves_no_output(tmp_path, sim_log, capsys):
+    """A bad configuration value stops the run with exit 2 before anything is written."""
+    path, _ = sim_log
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("keyframes:\n  distance_m: -1\n")
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(path), "--out", str(out), "--config", str(bad), "--quiet"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.yaml" in err[0]
+    assert not out.exists()
