@@ -82,9 +82,9 @@ def score(m, gt) -> dict:
     return {"auc": float(auc), "auc_observed_cells": float(auc_obs), "coverage": float(obs.sum() / known.sum())}
 
 
-def fit_time(cfg: MappingConfig, X, y):
+def fit_time(cfg: MappingConfig, X, y, beams):
     t0 = time.perf_counter()
-    hyp = initial_hyperparameters(cfg.gp, X, y)
+    hyp = initial_hyperparameters(cfg.gp, X, y, beams)
     return hyp, time.perf_counter() - t0
 
 
@@ -102,9 +102,9 @@ def bench_world(name: str, yaml: str, res: float, seed: int, n_scans: int, every
     # hyperparameters: LML fit on the first frame (Yuan et al. §IV), timed separately
     f0 = frames[0]
     fast_hyp, t_fast = fit_time(cfg, *ring_training_set(beam_samples(f0, res, cfg.fastgpom.stop_before_hit),
-                                                         cfg.fastgpom.train_beam_stride)[:2])
-    X, y, _ = ClassicGPOM(geom, cfg).training_set(f0)
-    gpom_hyp, t_gpom = fit_time(cfg, X, y)
+                                                         cfg.fastgpom.train_beam_stride))
+    X, y, _, beams = ClassicGPOM(geom, cfg).training_set(f0)
+    gpom_hyp, t_gpom = fit_time(cfg, X, y, beams)
     mappers = {
         "fastgpom": (FastGPOM(geom, cfg, fast_hyp), fast_hyp, t_fast),
         "gpom": (ClassicGPOM(geom, cfg, gpom_hyp), gpom_hyp, t_gpom),

@@ -16,8 +16,8 @@ class GPConfig(BaseModel):
     length_scale: float = 1.90
     sigma_f: float = 8.13
     sigma_n: float = 0.226
-    #: at most this many training samples (evenly strided) enter the marginal-likelihood fit
-    fit_max_points: int = 400
+    #: at most this many training samples (thinned by beam) enter the marginal-likelihood fit
+    fit_max_points: int = 600
     fit_restarts: int = 1
 
 

@@ -110,7 +110,7 @@ class FastGPOM:
             return None
         X, y, xb = ring_training_set(bs, 1 if fc.exact_gp else fc.train_beam_stride)
         if self.hyp is None:
-            self.hyp = initial_hyperparameters(self.config.gp, X, y)
+            self.hyp = initial_hyperparameters(self.config.gp, X, y, xb)
         margin = 0.5 * np.sqrt(2.0) * geom.resolution
         rows, cols = geom.window(world_T_sensor[:2, 3], float(bs.outer.max()) + margin)
         if rows.stop <= rows.start or cols.stop <= cols.start:

@@ -6,6 +6,8 @@ latent occupancy (+1 occupied, −1 free), dimensionless. The grid lives in the 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -48,10 +50,27 @@ class GaussianGrid:
                             variance=var, observed=self.prec > 0, method=method)
 
 
-def initial_hyperparameters(cfg: GPConfig, X: Array, y: Array) -> GPHyperparameters:
-    """The configured constants, or the LML optimum on these (first-frame) samples, ≤ fit_max_points."""
+def initial_hyperparameters(cfg: GPConfig, X: Array, y: Array, beams: NDArray[np.int64] | None = None) -> GPHyperparameters:
+    """The configured constants, or the LML optimum on these (first-frame) samples.
+
+    At most ``cfg.fit_max_points`` samples enter the fit; they are thinned **by beam** (every k-th
+    beam keeps all its samples) so that neighbouring occupied/free samples stay together — thinning
+    the flat sample list breaks those pairs and the fit then sees uncorrelated labels. An optimum
+    whose signal variance is below the noise variance (a noise-only model that would predict μ ≈ 0
+    everywhere) is rejected with a warning in favour of the configured values.
+    """
     start = GPHyperparameters(cfg.nu, cfg.length_scale, cfg.sigma_f, cfg.sigma_n)
     if cfg.hyperparameters == "fixed" or len(X) < 3:
         return start
-    stride = max(1, int(np.ceil(len(X) / cfg.fit_max_points)))
-    return fit_hyperparameters(X[::stride], y[::stride], start, restarts=cfg.fit_restarts)
+    if len(X) > cfg.fit_max_points:
+        groups = np.arange(len(X)) if beams is None else np.asarray(beams)
+        ug, rank = np.unique(groups, return_inverse=True)
+        k = int(np.ceil(len(X) / cfg.fit_max_points))
+        keep = rank % k == 0
+        X, y = X[keep], y[keep]
+    fit = fit_hyperparameters(X, y, start, restarts=cfg.fit_restarts)
+    if fit.sigma_f < fit.sigma_n:
+        warnings.warn(f"GP hyperparameter fit gave a noise-only model ({fit}); using the configured values {start}",
+                      stacklevel=2)
+        return start
+    return fit

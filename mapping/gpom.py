@@ -33,24 +33,25 @@ class ClassicGPOM:
         self.grid = GaussianGrid(geometry)
         self.hyp = hyperparameters
 
-    def training_set(self, frame: Frame) -> tuple[Array, Array, float]:
-        """Hits (+1) and free samples (−1) in the sensor frame, and the longest beam (m)."""
+    def training_set(self, frame: Frame) -> tuple[Array, Array, float, NDArray[np.int64]]:
+        """Hits (+1) and free samples (−1) in the sensor frame, the longest beam (m), each sample's beam."""
         gc = self.config.gpom
         bs = beam_samples(frame, gc.free_step, gc.stop_before_hit, beam_stride=gc.beam_stride)
         H = bs.hit_xy
         X = np.concatenate([H, bs.free_xy])
-        y = np.concatenate([np.ones(len(H)), -np.ones(len(bs.free_xy))])
-        return X, y, float(bs.outer.max()) if len(bs.outer) else 0.0
+        y = np.concatenate([np.ones(len(H)), -np.ones(len(X) - len(H))])
+        beams = np.concatenate([np.flatnonzero(bs.hit), bs.free_beam])
+        return X, y, float(bs.outer.max()) if len(bs.outer) else 0.0, beams
 
     def update(self, frame: Frame, world_T_base: Array) -> None:
         """Fuse one scan taken at robot pose ``world_T_base`` (4×4) into the global grid."""
         geom = self.grid.geometry
         world_T_sensor = np.asarray(world_T_base, float) @ frame.base_T_sensor
-        X, y, reach = self.training_set(frame)
+        X, y, reach, beams = self.training_set(frame)
         if len(X) == 0:
             return
         if self.hyp is None:
-            self.hyp = initial_hyperparameters(self.config.gp, X, y)
+            self.hyp = initial_hyperparameters(self.config.gp, X, y, beams)
         rows, cols = geom.window(world_T_sensor[:2, 3], reach)
         x, yy = geom.window_in_frame(rows, cols, inverse(world_T_sensor))
         sel = np.flatnonzero(np.hypot(x, yy).ravel() <= reach)

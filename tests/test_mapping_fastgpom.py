@@ -174,3 +174,30 @@ def test_region_a_prior_is_configurable():
     np.testing.assert_allclose(m.variance[rows, cols][iy, ix], 0.2)
     b = var != 0.2
     assert np.all(var[b] < HYP.sigma_f**2)
+
+
+def test_fit_subset_thinned_by_beam(monkeypatch):
+    """The first-frame fit sees at most fit_max_points samples, thinned by whole beams: every kept beam
+    contributes both its hit (+1) and its last free sample (−1)."""
+    import mapping.gaussian_grid as gg
+    from mapping.config import GPConfig
+    from mapping.fastgpom import ring_training_set
+
+    geom, occ, _ = box_world()
+    bs = beam_samples(cast(geom, occ, (0.0, 0.0, 0.0)), 0.05)
+    X, y, xb = ring_training_set(bs)
+    seen = {}
+
+    def fake_fit(Xf, yf, start, **kw):
+        seen["X"], seen["y"] = Xf, yf
+        return start
+
+    monkeypatch.setattr(gg, "fit_hyperparameters", fake_fit)
+    gg.initial_hyperparameters(GPConfig(fit_max_points=200), X, y, xb)
+    Xf, yf = seen["X"], seen["y"]
+    assert len(Xf) <= 200
+    rows = {tuple(p): b for p, b in zip(X, xb)}
+    kept = np.array([rows[tuple(p)] for p in Xf])
+    for b in np.unique(kept):
+        both = (yf[kept == b] > 0).any() and (yf[kept == b] < 0).any()
+        assert both or not (bs.hit[b] and bs.inner[b] > 0)
