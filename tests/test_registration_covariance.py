@@ -146,16 +146,16 @@ def test_jacobians_match_finite_differences(dim):
 
 
 def test_chi2_false_rejection_rate_matches_configuration():
-    """With false_rejection_rate α = 0.05 and the true σ, correct alignments (400 trials, plane
+    """With false_rejection_rate α = 0.05 and the true σ, correct alignments (300 trials, plane
     model) are rejected at a measured rate within the 99.9 % binomial band of α."""
     rng = np.random.default_rng(33)
     tgt = IcpTarget(dense_segments(ROOM, 0.002))
     cfg = IcpConfig(gates=(0.3, 0.1), sigma=SIGMA, false_rejection_rate=0.05)
     rejected = 0
-    n = 400
+    n = 300
     for _ in range(n):
         T = geo.se2_exp(rng.normal(size=3) * [0.05, 0.05, 0.02])
-        pts = sample_segments(ROOM, 200, rng) + rng.normal(scale=SIGMA, size=(200, 2))
+        pts = sample_segments(ROOM, 150, rng) + rng.normal(scale=SIGMA, size=(150, 2))
         rejected += not icp(geo.transform_points(geo.inverse(T), pts), tgt, None, cfg).accepted
     band = 3.3 * np.sqrt(0.05 * 0.95 / n)
     assert abs(rejected / n - 0.05) <= band
