@@ -94,3 +94,19 @@ def test_initial_poses_errors():
         initial_poses(g, "odometry")
     with pytest.raises(GpslamError):
         initial_poses(g, "magic")
+
+
+def test_zero_edge_weight_equals_removing_the_edge():
+    """Per-edge weights scale κ and τ: weight 0 on a loop edge gives the initialisation of the graph without it."""
+    rng = np.random.default_rng(10)
+    g, _ = synthetic_graph(rng, 50, 3, loops=20, noise=0.05)
+    drop = next(e for e, kind in enumerate(g.edge_kinds) if kind == "loop")
+    h = PoseGraph(3)
+    for nid, T in zip(g.node_ids, g.poses):
+        h.add_node(int(nid), T)
+    for e, ed in enumerate(g.edges()):
+        if e != drop:
+            h.add_edge(ed.i, ed.j, ed.measurement, ed.information, ed.kind)
+    w = np.ones(g.num_edges)
+    w[drop] = 0.0
+    np.testing.assert_allclose(chordal_initialisation(g, w), chordal_initialisation(h), atol=1e-9)

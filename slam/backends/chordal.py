@@ -217,6 +217,7 @@ def solve_chordal(
     block_ordering: bool = True,
     forcing: float = 1e-3,
     max_pcg: int = 10,
+    edge_weights: ArrayLike | None = None,
 ) -> ChordalResult:
     """Minimise the SE-Sync objective by chordal Gauss-Newton from *initial* poses ``(N, 4, 4)``.
 
@@ -244,6 +245,9 @@ def solve_chordal(
         raise GraphError(f"initial poses must be a finite ({graph.num_nodes}, 4, 4) array")
     a = graph.edge_arrays()
     kappa, tau = chordal_weights(graph)
+    if edge_weights is not None:  # e.g. robust (IRLS / GNC) weights; the reported cost is then weighted too
+        w = np.asarray(edge_weights, dtype=float)
+        kappa, tau = kappa * w, tau * w
     n = graph.num_nodes
     fixed = np.zeros(n, dtype=bool)
     fixed[graph.anchor_indices()] = True

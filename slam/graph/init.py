@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from registration import geometry as geo
 
@@ -80,15 +80,19 @@ def _solve_anchored(rows: Array, cols: NDArray[np.int64], vals: Array, weights: 
     return x
 
 
-def chordal_initialisation(graph: PoseGraph) -> Array:
+def chordal_initialisation(graph: PoseGraph, edge_weights: ArrayLike | None = None) -> Array:
     """Chordal relaxation (Carlone et al. ICRA 2015): rotations, projection to SO(d), then translations.
 
-    Returns ``(N, 4, 4)`` poses; uses the SE-Sync weights κ (rotation) and τ (translation).
+    Returns ``(N, 4, 4)`` poses; uses the SE-Sync weights κ (rotation) and τ (translation), each multiplied
+    by the optional per-edge *edge_weights* ``(M,)`` (used by :func:`robust_chordal_initialisation`).
     """
     d = graph.dim
     n = graph.num_nodes
     a = graph.edge_arrays()
     kappa, tau = chordal_weights(graph)
+    if edge_weights is not None:
+        w = np.asarray(edge_weights, dtype=float)
+        kappa, tau = kappa * w, tau * w
     m = len(a.jj)
     prior = a.ii < 0
     anchors = graph.anchor_indices()
