@@ -100,6 +100,7 @@ class LoopCloser:
                               robust="cauchy", robust_scale=config.icp_sigma * 2.0, sigma=config.icp_sigma,
                               chi2_factor=config.chi2_factor, covariance_model="plane", workers=1)
         self._icp_wide = self._icp.model_copy(update={"gates": (2.0,) + tuple(config.icp_gates)})
+        self._cache: dict[int, tuple[Array, IcpTarget]] = {}
 
     # ------------------------------------------------------------------ candidates
     def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float) -> list[int]:
@@ -133,15 +134,29 @@ class LoopCloser:
             self.index.add(kf.id, kf.points)
 
     # ------------------------------------------------------------------ verification
-    def _local_map(self, keyframes: list[Keyframe], poses: Array, i: int) -> Array:
-        """Points of keyframes i±k in keyframe i's sensor frame, from the current pose estimates."""
+    def _target(self, keyframes: list[Keyframe], poses: Array, i: int) -> IcpTarget:
+        """ICP target: points of keyframes i±k in keyframe i's sensor frame, from the current estimates.
+
+        Cached per keyframe; rebuilt when a neighbour's pose relative to keyframe i changed by more
+        than 5 mm or 0.1° (e.g. after a loop closure), so revisits of one place reuse the k-d tree and normals.
+        """
         k = self.config.submap_keyframes
         lo, hi = max(0, i - k), min(len(poses), i + k + 1)
-        ref = poses[i] @ keyframes[i].base_T_sensor
-        inv_ref = G.inverse(ref)
-        parts = [G.transform_points(inv_ref @ poses[m] @ keyframes[m].base_T_sensor, keyframes[m].points)
-                 for m in range(lo, hi)]
-        return np.vstack(parts)
+        inv_ref = G.inverse(poses[i] @ keyframes[i].base_T_sensor)
+        rel = np.array([inv_ref @ poses[m] @ keyframes[m].base_T_sensor for m in range(lo, hi)])
+        hit = self._cache.get(i)
+        if hit is not None and hit[0].shape == rel.shape:
+            d = G.relative(hit[0], rel)
+            if (np.abs(d[:, :3, 3]).max() < 5e-3
+                    and np.abs(G.so3_log(d[:, :3, :3])).max() < np.radians(0.1)):
+                return hit[1]
+        pts = np.vstack([G.transform_points(T, keyframes[m].points) for T, m in zip(rel, range(lo, hi))])
+        target = IcpTarget(pts, normal_neighbors=8, workers=1)
+        self._cache[i] = (rel, target)
+        if len(self._cache) > 512:  # bounded memory: drop the oldest entries
+            for key in list(self._cache)[:128]:
+                del self._cache[key]
+        return target
 
     def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
                relative_cov: Array | None, source: str) -> LoopClosure | None:
@@ -150,7 +165,7 @@ class LoopCloser:
         self.stats.verified += 1
         kj = keyframes[j]
         try:
-            target = IcpTarget(self._local_map(keyframes, poses, i), normal_neighbors=8, workers=1)
+            target = self._target(keyframes, poses, i)
             cfg = self._icp if source == "spatial" else self._icp_wide
             res = icp_point_to_plane(kj.points, target, guess_sensor, cfg)
         except DegenerateInputError:

@@ -71,7 +71,8 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
     c = config.odometry
     if c.method == "kiss":
         base = KissOdometryConfig.planar_default() if planar else KissOdometryConfig()
-        kc = base.model_copy(update={"use_wheel_odometry": c.use_wheel_odometry,
+        # The pipeline computes its own keyframe-edge covariance, so KISS's per-scan one is skipped.
+        kc = base.model_copy(update={"use_wheel_odometry": c.use_wheel_odometry, "compute_covariance": False,
                                      "max_range": c.max_range if planar else base.max_range})
         return KissOdometry(kc)
     icp_cfg = IcpConfig(gates=(0.5, 0.2), max_iterations=30, tol_translation=1e-4, tol_rotation=1e-4,
