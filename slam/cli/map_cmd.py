@@ -15,15 +15,9 @@ class Method(str, Enum):
 
 
 def _single_blas_thread():
-    """Limit BLAS to one thread while mapping when threadpoolctl is available: the batched small
-    LAPACK calls of Fast-GPOM ran ~30× slower multi-threaded on a loaded 2-core machine."""
-    import contextlib
+    from slam.blas import single_blas_thread
 
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional
-        return contextlib.nullcontext()
-    return threadpool_limits(1)
+    return single_blas_thread()
 
 
 def _poses_for(frames, source: str, max_dt: float):

@@ -84,7 +84,14 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
 
 
 def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
-    """Run the pipeline over an iterable of :class:`Frame` (time order)."""
+    """Run the pipeline over an iterable of :class:`Frame` (time order). BLAS runs single-threaded."""
+    from slam.blas import single_blas_thread
+
+    with single_blas_thread():
+        return _run_slam(frames, config, progress)
+
+
+def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None) -> SlamResult:
     t_start = time.perf_counter()
     times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
     front: FrontEnd | None = None
