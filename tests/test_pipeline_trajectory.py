@@ -37,3 +37,17 @@ def test_keyframes_keep_their_optimised_pose_and_corrections_blend():
     # 3D path gives the same result for a planar problem
     out3 = interpolate_scan_poses(stamps, O, scan_kf, stamps[kf_idx], O[kf_idx], X, planar=False)
     np.testing.assert_allclose(out3, out, atol=1e-12)
+
+
+def test_cap_range_turns_far_beams_into_free_space():
+    """Beams beyond the cap become no-return beams of the cap's length; nearer hits are unchanged."""
+    from registration.frame import Frame
+    from slam.pipeline.mapping_stage import cap_range
+
+    ang = np.linspace(-1.0, 1.0, 5)
+    r = np.array([1.0, 20.0, np.inf, 5.0, 11.9])
+    f = Frame(0.0, np.c_[r * np.cos(ang), r * np.sin(ang)][np.isfinite(r)], angles=ang, ranges=r, max_range=80.0)
+    g = cap_range(f, 12.0)
+    np.testing.assert_array_equal(g.no_return, [False, True, True, False, False])
+    assert g.max_range == 12.0 and len(g.points) == 3
+    np.testing.assert_allclose(np.hypot(*g.free_endpoints().T), [1.0, 12.0, 12.0, 5.0, 11.9])

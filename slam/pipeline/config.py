@@ -93,6 +93,7 @@ class MappingStageConfig(_Model):
     """
 
     enabled: bool = True
+    max_range_m: float = Field(12.0, gt=0, description="beams are used up to this range; longer and no-return beams carve free space to it (GMapping's maxUrange)")
     keyframes_per_submap: int = Field(10, ge=1)
     submap_half_size_m: float = Field(12.0, gt=0, description="half side of a submap's square grid")
     recompose_every_keyframes: int = Field(50, ge=1, description="recompose the global map after an optimisation at most this often")

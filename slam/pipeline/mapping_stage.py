@@ -54,6 +54,23 @@ def planar_scan_from_cloud(frame: Frame, band: tuple[float, float], n_beams: int
                  source=frame.source)
 
 
+def cap_range(frame: Frame, cap: float) -> Frame:
+    """*frame* with beams longer than *cap* (m) turned into no-return beams of range *cap*.
+
+    Such a beam then carves free space up to *cap* and marks no hit, as a maximum usable range
+    does in grid mappers (GMapping's ``maxUrange``): far, grazing returns are the least reliable.
+    """
+    if frame.ranges is None or (np.isfinite(frame.max_range) and frame.max_range <= cap):
+        return frame
+    far = frame.no_return | (frame.ranges > cap)
+    ranges = np.where(far, np.inf, frame.ranges)
+    hit = ~far
+    pts = np.c_[ranges[hit] * np.cos(frame.angles[hit]), ranges[hit] * np.sin(frame.angles[hit])]
+    from dataclasses import replace
+
+    return replace(frame, points=pts, ranges=ranges, no_return=far, max_range=cap)
+
+
 class MapBuilder:
     """Builds the occupancy map of a SLAM run (see module docstring)."""
 
@@ -76,11 +93,11 @@ class MapBuilder:
         return self.config.enabled and self.config.params.method == "fastgpom"
 
     def scan_for(self, kf: Keyframe) -> Frame:
-        """The planar scan of a keyframe (a virtual one for 3D clouds)."""
-        if self.planar:
-            return kf.frame
-        max_range = min(kf.frame.max_range, 50.0) if np.isfinite(kf.frame.max_range) else 50.0
-        return planar_scan_from_cloud(kf.frame, self.config.height_band, self.config.virtual_beams, max_range)
+        """The planar scan of a keyframe (a virtual one for 3D clouds), limited to ``max_range_m``."""
+        cap = self.config.max_range_m
+        if not self.planar:
+            return planar_scan_from_cloud(kf.frame, self.config.height_band, self.config.virtual_beams, cap)
+        return cap_range(kf.frame, cap)
 
     def _geometry_around(self, centres: Array) -> GridGeometry:
         h = self.config.submap_half_size_m
