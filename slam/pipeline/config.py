@@ -12,7 +12,6 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapping.config import MappingConfig
-from registration.errors import ConfigError
 from slam.keyframes import KeyframeConfig
 
 
@@ -117,13 +116,9 @@ class SlamConfig(_Model):
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SlamConfig":
         """Load from YAML; unknown keys and bad values raise ConfigError naming the file."""
-        try:
-            with open(path) as fh:
-                data = yaml.safe_load(fh) or {}
-            return cls.model_validate(data)
-        except (OSError, yaml.YAMLError, ValueError) as exc:
-            msg = " ".join(str(exc).split())
-            raise ConfigError(f"{path}: {msg}") from exc
+        from registration.config import load_yaml
+
+        return load_yaml(cls, path)  # type: ignore[return-value]
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
