@@ -88,7 +88,7 @@ def run(
     log: Path = typer.Argument(..., help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence."),
     out: Path = typer.Option(Path("out/run"), "--out", help="Output folder (written atomically)."),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration (see config.yaml of any run)."),
-    odometry: str | None = typer.Option(None, "--odometry", help="kiss (KISS-ICP) or icp (our scan-to-map SVD-ICP)."),
+    odometry: str | None = typer.Option(None, "--odometry", help="auto (default: KISS-ICP for 3D, our ICP for 2D), kiss or icp."),
     backend: str | None = typer.Option(None, "--backend", help="gtsam (iSAM2 + batch LM) or chordal (batch)."),
     map_method: str | None = typer.Option(None, "--map", help="fastgpom, gpom, logodds or none."),
     topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),

@@ -20,9 +20,12 @@ class _Model(BaseModel):
 
 
 class OdometryStageConfig(_Model):
-    """Which registration source gives odometry (``kiss`` = KISS-ICP, ``icp`` = our scan-to-map ICP)."""
+    """Which registration source gives odometry: ``kiss`` (KISS-ICP), ``icp`` (our scan-to-map SVD-ICP)
+    or ``auto`` — KISS-ICP for 3D clouds, our ICP for planar scans. On the whole Intel log the SLAM
+    relation error was 0.044 m with ``icp`` against 0.41 m with ``kiss`` (KISS-ICP loses track in
+    places there), so planar logs default to ``icp``."""
 
-    method: Literal["kiss", "icp"] = "kiss"
+    method: Literal["auto", "kiss", "icp"] = "auto"
     use_wheel_odometry: bool = True
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)

@@ -69,7 +69,7 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
     from registration.odometry import IcpOdometry, KissOdometry
 
     c = config.odometry
-    if c.method == "kiss":
+    if c.method == "kiss" or (c.method == "auto" and not planar):
         base = KissOdometryConfig.planar_default() if planar else KissOdometryConfig()
         # The pipeline computes its own keyframe-edge covariance, so KISS's per-scan one is skipped.
         kc = base.model_copy(update={"use_wheel_odometry": c.use_wheel_odometry, "compute_covariance": False,
