@@ -131,6 +131,9 @@ class IcpOdometryConfig(_Frozen):
 
     icp: IcpConfig = IcpConfig(gates=(0.5, 0.2, 0.1), voxel_size=0.05, robust="trim", trim_fraction=0.9)
     map_scans: int = Field(10, ge=1)
+    #: point-to-plane (point-to-line in 2D, Chen & Medioni 1992) instead of point-to-point SVD steps:
+    #: no bias towards zero motion where the scan samples the surfaces differently than the map
+    point_to_plane: bool = False
     map_voxel_size: float = Field(0.05, gt=0.0)
     keyframe_distance: float = Field(0.0, ge=0.0)
     max_range: float = Field(30.0, gt=0.0)

@@ -34,6 +34,7 @@ from .config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
 from .errors import DegenerateInputError, GeometryError
 from .frame import Frame
 from .icp import IcpTarget, evaluate_alignment, icp
+from .point_to_plane import icp_point_to_plane
 from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
@@ -206,7 +207,7 @@ class IcpOdometry(Odometry):
         target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
         cov = accepted = None
         try:
-            res = icp(pts, target, guess, cfg.icp)
+            res = (icp_point_to_plane if cfg.point_to_plane else icp)(pts, target, guess, cfg.icp)
             pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma else None
         except DegenerateInputError:
             pose = guess  # too few pairs (e.g. an empty scan): dead-reckon on the guess

@@ -27,6 +27,7 @@ class OdometryStageConfig(_Model):
 
     method: Literal["auto", "kiss", "icp"] = "auto"
     use_wheel_odometry: bool = True
+    icp_point_to_plane: bool = Field(True, description="our ICP odometry: point-to-line/plane steps instead of point-to-point")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
