@@ -46,7 +46,8 @@ def test_cap_range_turns_far_beams_into_free_space():
 
     ang = np.linspace(-1.0, 1.0, 5)
     r = np.array([1.0, 20.0, np.inf, 5.0, 11.9])
-    f = Frame(0.0, np.c_[r * np.cos(ang), r * np.sin(ang)][np.isfinite(r)], angles=ang, ranges=r, max_range=80.0)
+    fin = np.isfinite(r)
+    f = Frame(0.0, np.c_[r[fin] * np.cos(ang[fin]), r[fin] * np.sin(ang[fin])], angles=ang, ranges=r, max_range=80.0)
     g = cap_range(f, 12.0)
     np.testing.assert_array_equal(g.no_return, [False, True, True, False, False])
     assert g.max_range == 12.0 and len(g.points) == 3
