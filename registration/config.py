@@ -135,7 +135,10 @@ class IcpOdometryConfig(_Frozen):
     #: no bias towards zero motion where the scan samples the surfaces differently than the map
     point_to_plane: bool = False
     map_voxel_size: float = Field(0.05, gt=0.0)
+    #: a scan joins the local map when the sensor moved ≥ keyframe_distance (m) or turned ≥ keyframe_angle
+    #: (rad) since the last one that did (0 = every scan); the map's k-d tree is rebuilt only then
     keyframe_distance: float = Field(0.0, ge=0.0)
+    keyframe_angle: float = Field(0.1, gt=0.0)
     max_range: float = Field(30.0, gt=0.0)
     min_range: float = Field(0.0, ge=0.0)
     use_wheel_odometry: bool = True

@@ -195,6 +195,7 @@ class IcpOdometry(Odometry):
         self.config = config or IcpOdometryConfig()
         self._map: deque[Array] = deque(maxlen=self.config.map_scans)
         self._map_pose: Array | None = None
+        self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
 
     def update(self, frame: Frame) -> OdometryStep:
         cfg = self.config
@@ -204,7 +205,9 @@ class IcpOdometry(Odometry):
             self._map_pose = np.eye(4)
             return self._emit(frame, np.eye(4), None, None)
         guess = self._pose @ self._guess(frame, cfg.use_wheel_odometry)
-        target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
+        if self._target is None:
+            self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
+        target = self._target
         cov = accepted = None
         try:
             res = (icp_point_to_plane if cfg.point_to_plane else icp)(pts, target, guess, cfg.icp)
@@ -214,7 +217,10 @@ class IcpOdometry(Odometry):
         if frame.is_planar:
             pose = _planar(pose)
         moved = geo.relative(self._map_pose, pose)
-        if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance):
+        turned = float(np.linalg.norm(geo.so3_log(moved[:3, :3])))
+        if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance
+                or turned >= cfg.keyframe_angle):
             self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)))
             self._map_pose = pose
+            self._target = None
         return self._emit(frame, pose, cov, accepted)

@@ -28,6 +28,8 @@ class OdometryStageConfig(_Model):
     method: Literal["auto", "kiss", "icp"] = "auto"
     use_wheel_odometry: bool = True
     icp_point_to_plane: bool = Field(True, description="our ICP odometry: point-to-line/plane steps instead of point-to-point")
+    icp_map_step_m: float = Field(0.0, ge=0, description="our ICP odometry: a scan joins the local map after this much motion (0 = every scan) ...")
+    icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
