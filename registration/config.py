@@ -142,6 +142,10 @@ class IcpOdometryConfig(_Frozen):
     max_range: float = Field(30.0, gt=0.0)
     min_range: float = Field(0.0, ge=0.0)
     use_wheel_odometry: bool = True
+    #: with wheel odometry as the guess: an ICP increment further than this from it (m, rad) is a
+    #: registration failure (e.g. a wrong basin in a featureless stretch) and the guess is kept instead
+    max_guess_deviation_m: float | None = Field(None, gt=0.0)
+    max_guess_deviation_rad: float | None = Field(None, gt=0.0)
 
 
 def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:

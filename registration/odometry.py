@@ -190,6 +190,19 @@ class KissOdometry(Odometry):
 class IcpOdometry(Odometry):
     """SVD-ICP scan-to-local-map odometry; the map is the last ``map_scans`` scans (world frame)."""
 
+    def _wheel_guided(self, frame: Frame) -> bool:
+        c = self.config
+        return (c.use_wheel_odometry and self._prev_frame is not None and frame.odom is not None
+                and self._prev_frame.odom is not None)
+
+    def _too_far(self, guess: Array, pose: Array) -> bool:
+        """True when *pose* deviates from the wheel guess by more than the configured bounds."""
+        c = self.config
+        d = geo.relative(guess, pose)
+        return bool((c.max_guess_deviation_m is not None and np.linalg.norm(d[:3, 3]) > c.max_guess_deviation_m)
+                    or (c.max_guess_deviation_rad is not None
+                        and np.linalg.norm(geo.so3_log(d[:3, :3])) > c.max_guess_deviation_rad))
+
     def __init__(self, config: IcpOdometryConfig | None = None) -> None:
         super().__init__()
         self.config = config or IcpOdometryConfig()
@@ -216,6 +229,8 @@ class IcpOdometry(Odometry):
             pose = guess  # too few pairs (e.g. an empty scan): dead-reckon on the guess
         if frame.is_planar:
             pose = _planar(pose)
+        if self._wheel_guided(frame) and self._too_far(guess, pose):
+            pose, cov, accepted = guess, None, False  # ICP left the wheel odometry's basin: keep the guess
         moved = geo.relative(self._map_pose, pose)
         turned = float(np.linalg.norm(geo.so3_log(moved[:3, :3])))
         if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance

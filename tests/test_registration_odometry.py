@@ -133,3 +133,28 @@ def test_kiss_kitti_end_point_drift_below_one_percent():
     dist = np.sum(np.linalg.norm(np.diff(G[:, :3, 3], axis=0), axis=1))
     err = np.linalg.norm(geo.relative(G[-1], odo.world_T_sensor)[:3, 3])
     assert err / dist <= 0.01
+
+
+def test_icp_odometry_keeps_the_wheel_guess_when_icp_jumps_out_of_its_basin():
+    """A scan that cannot match its map (a different room) pulls ICP far from the wheel guess; with the
+    deviation bound the step equals the wheel increment, without it the step follows the (wrong) ICP."""
+    from registration.config import IcpConfig, IcpOdometryConfig
+
+    ang = np.linspace(-np.pi / 2, np.pi / 2, 181)
+
+    def frame(k, pts, odom):
+        r = np.hypot(*pts.T)
+        return Frame(stamp=0.1 * k, points=pts, index=k, angles=ang[: len(pts)], ranges=r, odom=odom)
+
+    wall = np.c_[np.full(181, 3.0), np.linspace(-2.0, 2.0, 181)]  # a wall 3 m ahead
+    other = np.c_[np.full(181, 2.2), np.linspace(-2.0, 2.0, 181)]  # the next scan sees it 0.8 m closer
+    odo0, odo1 = np.eye(4), geo.xytheta_to_matrix(0.05, 0.0, 0.0)  # but the wheels say 5 cm
+    icp_cfg = IcpConfig(gates=(1.0, 0.5), max_iterations=30)
+    out = {}
+    for bound in (None, 0.3):
+        odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, max_guess_deviation_m=bound))
+        odo.update(frame(0, wall, odo0))
+        step = odo.update(frame(1, other, odo1))
+        out[bound] = step.prev_T_curr[0, 3]
+    assert out[0.3] == pytest.approx(0.05, abs=1e-9)
+    assert out[None] > 0.5

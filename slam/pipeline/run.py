@@ -80,6 +80,8 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
                         gates=(1.5, 0.6, 0.3), voxel_size=0.5, robust="cauchy", robust_scale=0.2)
     return IcpOdometry(IcpOdometryConfig(icp=icp_cfg, map_scans=10, point_to_plane=c.icp_point_to_plane,
                                          keyframe_distance=c.icp_map_step_m, keyframe_angle=c.icp_map_step_rad,
+                                         max_guess_deviation_m=c.icp_max_guess_deviation_m,
+                                         max_guess_deviation_rad=c.icp_max_guess_deviation_rad,
                                          map_voxel_size=0.03 if planar else 0.3,
                                          max_range=c.max_range if planar else 100.0, min_range=c.min_range,
                                          use_wheel_odometry=c.use_wheel_odometry))
