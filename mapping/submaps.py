@@ -152,6 +152,16 @@ class SubmapFuser:
                 n += 1
         return n
 
+    def resize(self, geometry: GridGeometry) -> None:
+        """Move the global map onto another world grid (e.g. grown to cover new anchors); every submap
+        is re-placed at its anchor on the next :meth:`update_poses` / :meth:`to_map`. No GP is run."""
+        self.geometry = geometry
+        self.info = np.zeros(geometry.shape)
+        self.prec = np.zeros(geometry.shape)
+        for sm in self.submaps.values():
+            sm.placed = None
+            sm.placed_pose = None
+
     def recompose(self) -> None:
         """Rebuild the global grid from scratch from every submap (clears accumulated round-off)."""
         self.info[:] = 0.0

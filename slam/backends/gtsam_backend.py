@@ -92,8 +92,22 @@ def to_values(poses: ArrayLike, dim: int, keys: Sequence[int] | None = None):  #
 
 
 def from_values(values, n: int, dim: int, keys: Sequence[int] | None = None) -> Array:  # type: ignore[no-untyped-def]
-    """``gtsam.Values`` → ``(N, 4, 4)`` poses."""
-    keys = range(n) if keys is None else keys
+    """``gtsam.Values`` → ``(N, 4, 4)`` poses.
+
+    When the requested keys are exactly the Values' own keys (in its sorted order) all poses come out
+    of one ``gtsam.utilities.extractPose2/3`` call instead of one Python call per key.
+    """
+    import gtsam
+
+    keys = list(range(n) if keys is None else keys)
+    if len(keys) == values.size() and list(values.keys()) == keys:
+        if dim == 2:
+            return geo.xytheta_to_matrix(np.asarray(gtsam.utilities.extractPose2(values)).reshape(-1, 3))
+        a = np.asarray(gtsam.utilities.extractPose3(values)).reshape(-1, 12)
+        P = np.tile(np.eye(4), (len(a), 1, 1))
+        P[:, :3, :3] = a[:, :9].reshape(-1, 3, 3)
+        P[:, :3, 3] = a[:, 9:]
+        return P
     if dim == 2:
         xyt = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(int(k)) for k in keys)]).reshape(-1, 3)
         return geo.xytheta_to_matrix(xyt)

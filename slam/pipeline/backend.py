@@ -25,22 +25,6 @@ Array = NDArray[np.float64]
 _KERNEL_NAMES = {"huber": "huber", "cauchy": "cauchy", "gm": "geman_mcclure"}
 
 
-def _values_to_poses(values, ids: list[int], dim: int) -> Array:  # type: ignore[no-untyped-def]
-    """All poses of a gtsam.Values in one call (``gtsam.utilities.extractPose2/3``), ordered by key."""
-    import gtsam
-
-    n = len(ids)
-    P = np.tile(np.eye(4), (n, 1, 1))
-    if dim == 2:
-        a = gtsam.utilities.extractPose2(values)
-        P[:] = G.xytheta_to_matrix(a)
-    else:
-        a = gtsam.utilities.extractPose3(values)
-        P[:, :3, :3] = a[:, :9].reshape(-1, 3, 3)
-        P[:, :3, 3] = a[:, 9:]
-    return P
-
-
 class PipelineBackend:
     """Keeps the pose graph and the current estimate of every keyframe pose (``world_T_base``)."""
 
@@ -89,10 +73,8 @@ class PipelineBackend:
         t0 = time.perf_counter()
         if self._smoother is not None:
             self._smoother.update()
-            est = self._smoother._estimate  # gtsam.Values of all keyframes
             if loop_added:
-                P = _values_to_poses(est, self._smoother.node_ids, self.dim)
-                self._poses = list(P)
+                self._poses = list(self._smoother.estimate()[1])
             else:
                 self._poses[-1] = self._smoother.pose(len(self._poses) - 1)
         else:

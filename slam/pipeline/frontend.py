@@ -97,15 +97,17 @@ class FrontEnd:
         self._dof: int | None = None
         self.wheel_edges: list[WheelEdge] = []
 
+    def _diagonal(self, var_translation: float, var_rotation: float) -> Array:
+        """Diagonal covariance in the (translation, rotation) tangent order of this log's dimension."""
+        n_t = 2 if self._dof == 3 else 3
+        return np.diag([var_translation] * n_t + [var_rotation] * (self._dof - n_t))
+
     def _floor(self, rel: Array) -> Array:
         c = self.config.odometry
         dist = float(np.linalg.norm(rel[:3, 3]))
         ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
-        st = c.floor_translation_m**2 + c.floor_translation_per_m**2 * dist
-        sr = c.floor_rotation_rad**2 + c.floor_rotation_per_rad**2 * ang
-        if self._dof == 3:
-            return np.diag([st, st, sr])
-        return np.diag([st, st, st, sr, sr, sr])
+        return self._diagonal(c.floor_translation_m**2 + c.floor_translation_per_m**2 * dist,
+                              c.floor_rotation_rad**2 + c.floor_rotation_per_rad**2 * ang)
 
     def _edge_covariance(self, prev: Keyframe, kf: Keyframe, rel_base: Array) -> Array | None:
         """Registration covariance of keyframe *kf* against *prev* at the odometry's relative pose (base frame)."""
@@ -129,11 +131,8 @@ class FrontEnd:
         c = self.config.odometry
         d = float(np.linalg.norm(rel[:3, 3]))
         ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
-        st = (c.wheel_sigma_per_m * d + 1e-3) ** 2
-        sr = (c.wheel_sigma_rad_per_m * d + c.wheel_sigma_rad_per_rad * ang + 1e-3) ** 2
-        if self._dof == 3:
-            return np.diag([st, st, sr])
-        return np.diag([st, st, st, sr, sr, sr])
+        return self._diagonal((c.wheel_sigma_per_m * d + 1e-3) ** 2,
+                              (c.wheel_sigma_rad_per_m * d + c.wheel_sigma_rad_per_rad * ang + 1e-3) ** 2)
 
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
         """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""

@@ -130,12 +130,7 @@ class MapBuilder:
         h = self.config.submap_half_size_m
         if (centres[:, 0].min() - h < x0 or centres[:, 0].max() + h > x1
                 or centres[:, 1].min() - h < y0 or centres[:, 1].max() + h > y1):
-            f.geometry = self._geometry_around(centres)
-            f.info = np.zeros(f.geometry.shape)
-            f.prec = np.zeros(f.geometry.shape)
-            for sm in f.submaps.values():
-                sm.placed = None
-                sm.placed_pose = None
+            f.resize(self._geometry_around(centres))
 
     def refresh(self, keyframe_poses: Array, force: bool = False) -> int:
         """Re-place submaps at the anchors' current poses (at most every ``recompose_every_keyframes``)."""
