@@ -29,6 +29,10 @@ class IcpConfig(_Frozen):
         max_iterations: iteration cap over all stages.
         tol_translation: convergence when the pose increment is below this (m) ...
         tol_rotation: ... and below this (rad).
+        tangent_weight: point-to-plane only: weight α of the residual along the target surface
+            (cost Σ w[(nᵀe)² + α²|(I − nnᵀ)e|²], a point-to-point term damped by α²). With α = 0
+            steps along a weakly constrained direction (a corridor) crawl, because the normals of a
+            sampled wall are noisy; a small α lets correspondences pin it, as in point-to-point ICP.
         voxel_size: voxel subsampling of the source before matching (m); None = off.
         target_voxel_size: voxel subsampling of the target (m); None = off.
         robust: ``none`` (all gated pairs weight 1), ``trim`` (keep the ``trim_fraction`` closest
@@ -49,6 +53,7 @@ class IcpConfig(_Frozen):
     max_iterations: int = 100
     tol_translation: float = 1e-6
     tol_rotation: float = 1e-7
+    tangent_weight: float = Field(0.0, ge=0.0, le=1.0)
     voxel_size: float | None = None
     target_voxel_size: float | None = None
     robust: Literal["none", "trim", "huber", "cauchy"] = "none"
