@@ -20,6 +20,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
@@ -162,7 +163,11 @@ def run_loop_sweep(
 
     sweeps = list(sweeps)
     sweep_grid(config.loops, sweeps)
-    rec = record_front_end(frames, config)
+    def scans(n: int, k: int) -> None:
+        if progress is not None and n % 500 == 0:
+            progress(f"front end: {n} scans, {k} keyframes")
+
+    rec = record_front_end(frames, config, scans)
     if progress is not None:
         progress(f"front end: {len(rec.stamps)} scans, {len(rec.keyframes)} keyframes, {rec.time_s:.1f} s")
     return sweep_recorded(rec, config, sweeps, relations=relations, revisit_radius=revisit_radius,
@@ -202,6 +207,7 @@ def sweep_recorded(
     if relations is not None:
         cols += list(COLUMNS_RELATIONS)
     rows: list[dict[str, object]] = []
+    relations_used: tuple[int, int] | None = None
     for setting, loop_cfg in grid:
         rep = replay_loops(rec, loop_cfg, config.backend)
         edges = _loop_edges(rep)
@@ -224,6 +230,7 @@ def sweep_recorded(
 
             res = evaluate_relations(Trajectory(rec.stamps, rec.scan_poses(rep.keyframe_poses)), relations)
             row |= {"relation_trans_mean_m": res.trans_mean, "relation_rot_mean_deg": res.rot_mean_deg}
+            relations_used = (res.n_used, res.n_used + res.n_missing)  # the same stamps in every row
         rows.append({c: _nan_to_none(row[c]) for c in cols})
         if progress is not None:
             progress("  ".join(f"{c}={_fmt(row[c])}" for c in cols))
@@ -237,6 +244,8 @@ def sweep_recorded(
            "closures": "all accepted by verification, before pruning"},
         "base_loops": config.loops.model_dump(mode="json"),
     }
+    if relations_used is not None:
+        meta["relations_used"], meta["relations_total"] = relations_used
     return SweepResult(cols, rows, meta)
 
 
@@ -274,9 +283,10 @@ def write_sweep(out_dir, result: SweepResult, extra_meta: dict | None = None) ->
             json.dump(meta | {"columns": result.columns, "rows": result.rows}, fh, indent=2)
             fh.write("\n")
         swept = list(meta.get("sweeps", {}))
+        name = Path(str(meta.get("log", "the log"))).name
         x = "recall" if result.has_truth else "accepted"
         xlabel = "recall (true-revisit keyframes closed)" if result.has_truth else "accepted closures"
         ylabel = ("precision (agrees with ground truth, 20 cm / 1°)" if result.has_truth
                   else "precision (consistent after optimisation, 20 cm / 1°)")
         (tmp / "pr.png").write_bytes(sweep_png(result.rows, swept, x, "precision", xlabel, ylabel,
-                                               title=f"Loop closure over {len(result.rows)} settings"))
+                                               title=f"Loop closure on {name}, {len(result.rows)} settings"))

@@ -207,5 +207,5 @@ def sweep_png(rows: Sequence[dict], swept: Sequence[str], x: str, y: str, xlabel
         ax.set_title(title)
         ax.grid(True, alpha=0.3)
         if ax.lines:
-            ax.legend(loc="lower left", title=last if others else None)
+            ax.legend(loc="lower left", title=f"points labelled by {last}" if others else None)
         return _png(fig)
