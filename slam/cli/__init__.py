@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "slam.cli.solve_cmd",
     "slam.cli.map_cmd",
     "slam.cli.run_cmd",
+    "slam.cli.loops_cmd",
 )
 
 app = typer.Typer(
