@@ -70,7 +70,7 @@ class LoopConfig(_Model):
     icp_gates: tuple[float, ...] = (1.0, 0.4, 0.15)
     icp_method: Literal["point", "plane"] = Field("plane", description="verification ICP: point-to-point SVD-ICP or point-to-plane (point-to-line in 2D)")
     icp_tolerance: float = Field(5e-4, gt=0, description="ICP stops a gate stage when the pose increment is below this (m and rad)")
-    icp_max_iterations: int = Field(20, ge=1)
+    icp_max_iterations: int = Field(40, ge=1, description="alignments still moving at this cap are rejected")
     icp_sigma: float = Field(0.03, gt=0, description="a-priori range-point noise σ (m) for the χ² test")
     chi2_factor: float = Field(3.0, gt=0)
     min_fitness: float = Field(0.6, gt=0, le=1.0)

@@ -5,7 +5,8 @@
 odometry edges are the same) and keeps the keyframes, their odometry/wheel edges and the per-scan track.
 ``replay_loops`` then feeds that keyframe sequence through a fresh
 :class:`~slam.pipeline.loop_closure.LoopCloser` and :class:`~slam.pipeline.backend.PipelineBackend` in the
-same incremental order as ``run_slam`` — add keyframe, add odometry (+ wheel) edge, detect against the
+same incremental order as ``run_slam`` — both go through
+:class:`~slam.pipeline.online_graph.OnlineGraph`: add keyframe, add odometry (+ wheel) edge, detect against the
 online estimate, add closures, iSAM2 update — and finishes with the final batch solve and pruning.
 So one recording serves any number of loop-closure settings, and each replay accepts exactly the
 closures ``run_slam`` would with that :class:`~slam.pipeline.config.LoopConfig`.
@@ -22,7 +23,6 @@ from typing import Callable, Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as G
 from registration.errors import GpslamError
 from registration.frame import Frame
 
@@ -30,6 +30,7 @@ from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig, SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, WheelEdge
 from .loop_closure import LoopClosure
+from .online_graph import OnlineGraph
 from .trajectory import interpolate_scan_poses
 
 Array = NDArray[np.float64]
@@ -125,8 +126,7 @@ def record_front_end(frames: Iterable[Frame], config: SlamConfig,
             kf, edge, _ = front.process(frame)
             if kf is not None:
                 edges.append(edge)
-                w = front.wheel_edges[-1] if front.wheel_edges and front.wheel_edges[-1].j == kf.id else None
-                wheels.append(w if edge is not None else None)
+                wheels.append(front.latest_wheel_edge(kf) if edge is not None else None)
             if progress is not None:
                 progress(n + 1, len(front.keyframes))
     if front is None or not front.keyframes:
@@ -144,34 +144,11 @@ def replay_loops(record: FrontEndRecord, loops: LoopConfig, backend: BackendConf
     """Loop detection, verification and the pose graph over *record* with these settings (``run_slam`` order)."""
     from slam.blas import single_blas_thread
 
-    from .loop_closure import LoopCloser
-
     t0 = time.perf_counter()
     with single_blas_thread():
-        closer = LoopCloser(loops, record.planar)
-        be = PipelineBackend(backend, loops, record.planar)
-        dof = 3 if record.planar else 6
-        cov_since_closure = np.zeros((dof, dof))
-        accepted: list[LoopClosure] = []
+        graph = OnlineGraph(loops, backend, record.planar)
         kfs = record.keyframes
         for kf, edge, wheel in zip(kfs, record.edges, record.wheel_edges):
-            if edge is None:
-                be.add_keyframe(kf.id, kf.odom_pose)
-            else:
-                be.add_keyframe(kf.id, be.poses[edge.i] @ edge.measurement)
-                be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance)
-                if wheel is not None:
-                    be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
-                cov_since_closure = G.compound_covariance(cov_since_closure, edge.measurement, edge.covariance)
-            # The keyframes known online at this point: the detector never sees the future.
-            new = closer.detect(kfs[: kf.id + 1], be.poses, kf.id, cov_since_closure)
-            for lc in new:
-                be.add_loop(lc)
-            accepted.extend(new)
-            if new:
-                cov_since_closure = np.zeros_like(cov_since_closure)
-            be.update(loop_added=bool(new))
-        poses = be.finish()
-    stats = vars(closer.stats).copy()
-    stats["pruned"] = be.pruned_loops
-    return LoopReplay(accepted, stats, poses, be, time.perf_counter() - t0)
+            graph.add(kfs[: kf.id + 1], edge, wheel)
+        poses = graph.finish()
+    return LoopReplay(graph.loops, graph.stats, poses, graph.backend, time.perf_counter() - t0)
