@@ -67,3 +67,9 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         sys.exit(130)
+    except SystemExit as exc:
+        # typer turns a KeyboardInterrupt inside a command into a silent exit 130 (and no command
+        # exits 130 on its own): say why.
+        if exc.code == 130:
+            print("error: interrupted", file=sys.stderr)
+        raise
