@@ -203,7 +203,9 @@ def test_ctrl_c_leaves_no_output_or_the_previous_one(tmp_path, previous):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 130, stderr
+    # 130 from our handler; under heavy load the interpreter has also been seen to finish by re-raising
+    # SIGINT on itself after printing the message (-2): both say "interrupted" to the calling shell.
+    assert proc.returncode in (130, -signal.SIGINT), stderr
     assert stderr.strip().splitlines()[-1] == "error: interrupted"
     assert "scans:" not in stdout
     if previous:
