@@ -178,7 +178,7 @@ class LoopCloser:
         except DegenerateInputError:
             self.stats.rejected_icp += 1
             return None
-        if not res.converged:
+        if c.require_convergence and not res.converged:
             # Still moving at the iteration cap: on Intel these are alignments sliding along a corridor,
             # 0.2–0.8 m from where they end up after 200 iterations while their covariance claims ~1 cm.
             self.stats.rejected_icp += 1
