@@ -91,7 +91,9 @@ class _OdometryTap:
     def trajectory(self):  # type: ignore[no-untyped-def]
         from slam.trajectory_io import Trajectory
 
-        return Trajectory(np.asarray(self.stamps), np.asarray(self.odom).reshape(-1, 4, 4)) if self.stamps else None
+        if not self.stamps:
+            return None
+        return Trajectory(np.asarray(self.stamps), np.asarray(self.odom).reshape(-1, 4, 4))
 
 
 def run_ours(log: Path, relations, max_scans: int | None) -> dict:  # type: ignore[no-untyped-def]
@@ -115,7 +117,8 @@ def run_ours(log: Path, relations, max_scans: int | None) -> dict:  # type: igno
                        "mapping": cfg.mapping.enabled}}
 
 
-def run_peer(log: Path, relations, max_scans: int | None, params) -> tuple[dict, _OdometryTap]:  # type: ignore[no-untyped-def]
+def run_peer(log: Path, relations, max_scans: int | None,  # type: ignore[no-untyped-def]
+             params) -> tuple[dict, _OdometryTap]:
     """KISS-SLAM over the log (streamed); relation error, wall time, closures."""
     from evaluation.peers import run_kiss_slam
     from slam.logs import open_log
@@ -131,7 +134,8 @@ def run_peer(log: Path, relations, max_scans: int | None, params) -> tuple[dict,
             "params": r.params}, tap
 
 
-def wheel_odometry(log: Path, relations, max_scans: int | None, tap: _OdometryTap | None) -> dict | None:  # type: ignore[no-untyped-def]
+def wheel_odometry(log: Path, relations, max_scans: int | None,  # type: ignore[no-untyped-def]
+                   tap: _OdometryTap | None) -> dict | None:
     """Relation error of the raw wheel odometry of the same scans (from *tap*, else one more read)."""
     if tap is None:
         from slam.logs import open_log
@@ -199,7 +203,8 @@ def benchmark(args: argparse.Namespace) -> dict:
         "max_scans": args.max_scans, "relations_total": len(relations),
         "ours": ours, "kiss_slam": peer, "wheel_odometry": wheel,
         "published": published,
-        "versions": {d: _version(d) for d in ("gpslam", "kiss-slam", "map-closures", "kiss-icp", "open3d", "numpy")},
+        "versions": {d: _version(d)
+                     for d in ("gpslam", "kiss-slam", "map-closures", "kiss-icp", "open3d", "numpy")},
         "notes": [
             "relation error: Kümmerle et al. 2009, mean/std over the relations whose both stamps were processed "
             "(n_used; n_missing lie outside the processed scans)",

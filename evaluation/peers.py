@@ -130,7 +130,8 @@ def kiss_slam_config(params: KissSlamPlanarParams):  # type: ignore[no-untyped-d
             adaptive_threshold=AdaptiveThresholdConfig(initial_threshold=p.initial_threshold,
                                                        min_motion_th=p.min_motion_th),
         ),
-        local_mapper=LocalMapperConfig(voxel_size=p.local_map_voxel_size, splitting_distance=p.splitting_distance),
+        local_mapper=LocalMapperConfig(voxel_size=p.local_map_voxel_size,
+                                       splitting_distance=p.splitting_distance),
         loop_closer=LoopCloserConfig(
             detector=MapClosuresConfig(density_map_resolution=p.density_map_resolution,
                                        density_threshold=p.density_threshold,

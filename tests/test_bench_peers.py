@@ -25,9 +25,9 @@ from tests.conftest import DATA, REPO
 
 INTEL = DATA / "intel.clf.bz2"
 INTEL_REL = DATA / "intel.relations"
-SUMMARY_KEYS = {"ours_translation_mean_m", "ours_rotation_mean_deg", "ours_wall_s", "kiss_slam_translation_mean_m",
-                "kiss_slam_rotation_mean_deg", "kiss_slam_wall_s", "ratio_wall_ours_vs_kiss_slam",
-                "cartographer_translation_mean_m"}
+SUMMARY_KEYS = {"ours_translation_mean_m", "ours_rotation_mean_deg", "ours_wall_s",
+                "kiss_slam_translation_mean_m", "kiss_slam_rotation_mean_deg", "kiss_slam_wall_s",
+                "ratio_wall_ours_vs_kiss_slam", "cartographer_translation_mean_m"}
 
 
 def _bench():
@@ -78,7 +78,8 @@ def test_missing_peer_is_one_line_error(monkeypatch, capsys):
     cap = capsys.readouterr()
     assert cap.out == ""
     lines = cap.err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "make peers" in lines[0] and "--skip-peer" in lines[0]
+    assert len(lines) == 1 and lines[0].startswith("error: ")
+    assert "make peers" in lines[0] and "--skip-peer" in lines[0]
 
 
 def test_bad_peer_param_is_one_line_error(capsys):
