@@ -139,7 +139,7 @@ class FrontEnd:
 
     def _normals(self, points: Array) -> Array | None:
         """Normals of a new keyframe's points (sensor frame): the odometry's local map, else the scan."""
-        if len(points) < 3:
+        if len(points) < 3 or not self.config.odometry.keyframe_map_normals:
             return None
         n = self.odometry.local_normals(points)
         if n is None:
