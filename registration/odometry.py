@@ -228,7 +228,7 @@ class IcpOdometry(Odometry):
 
         c = self.config.icp
         pts = np.vstack([m[0] for m in self._map])
-        if not self.config.point_to_plane:
+        if not self.config.point_to_plane or not self.config.cache_scan_normals:
             return IcpTarget(pts, None, c.normal_neighbors, c.workers)
         tgt = IcpTarget(pts, None, c.normal_neighbors, c.workers, normals=np.zeros_like(pts))
         for entry in self._map:
