@@ -141,7 +141,8 @@ class IcpOdometryConfig(_Frozen):
     point_to_plane: bool = False
     map_voxel_size: float = Field(0.05, gt=0.0)
     #: point-to-plane: keep each map scan's normals from when it joined the map (one estimate per scan)
-    #: instead of re-estimating every map point's normal from the whole current map (the default)
+    #: instead of re-estimating every map point's normal from the whole current map (the default: cached
+    #: normals cut odometry time by half but raised the Intel relation error from 0.038 m to 0.060 m)
     cache_scan_normals: bool = False
     #: a scan joins the local map when the sensor moved ≥ keyframe_distance (m) or turned ≥ keyframe_angle
     #: (rad) since the last one that did (0 = every scan); the map's k-d tree is rebuilt only then

@@ -32,7 +32,7 @@ class OdometryStageConfig(_Model):
     icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
     icp_max_guess_deviation_rad: float | None = Field(0.35, gt=0, description="... or turned this much more; the wheel guess is kept")
     icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
-    keyframe_map_normals: bool = Field(False, description="keyframe normals from the odometry's local map (reused by loop ICP targets; faster, but measured worse on Intel: 0.065 m vs 0.038 m)")
+    keyframe_map_normals: bool = Field(False, description="keyframe normals from the odometry's local map (reused by loop ICP targets; faster; its effect on Intel was not measured separately)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
@@ -72,7 +72,7 @@ class LoopConfig(_Model):
     icp_method: Literal["point", "plane"] = Field("plane", description="verification ICP: point-to-point SVD-ICP or point-to-plane (point-to-line in 2D)")
     icp_tolerance: float = Field(1e-4, gt=0, description="ICP stops a gate stage when the pose increment is below this (m and rad)")
     icp_max_iterations: int = Field(40, ge=1)
-    require_convergence: bool = Field(False, description="reject alignments still moving at the iteration cap (removes corridor slides, but on Intel did not lower the relation error)")
+    require_convergence: bool = Field(False, description="reject alignments still moving at the iteration cap (removes corridor slides; on Intel it did not lower the relation error)")
     icp_sigma: float = Field(0.03, gt=0, description="a-priori range-point noise σ (m) for the χ² test")
     chi2_factor: float = Field(3.0, gt=0)
     min_fitness: float = Field(0.6, gt=0, le=1.0)
