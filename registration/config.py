@@ -29,10 +29,6 @@ class IcpConfig(_Frozen):
         max_iterations: iteration cap over all stages.
         tol_translation: convergence when the pose increment is below this (m) ...
         tol_rotation: ... and below this (rad).
-        tangent_weight: point-to-plane only: weight α of the residual along the target surface
-            (cost Σ w[(nᵀe)² + α²|(I − nnᵀ)e|²], a point-to-point term damped by α²). With α = 0
-            steps along a weakly constrained direction (a corridor) crawl, because the normals of a
-            sampled wall are noisy; a small α lets correspondences pin it, as in point-to-point ICP.
         voxel_size: voxel subsampling of the source before matching (m); None = off.
         target_voxel_size: voxel subsampling of the target (m); None = off.
         robust: ``none`` (all gated pairs weight 1), ``trim`` (keep the ``trim_fraction`` closest
@@ -53,7 +49,6 @@ class IcpConfig(_Frozen):
     max_iterations: int = 100
     tol_translation: float = 1e-6
     tol_rotation: float = 1e-7
-    tangent_weight: float = Field(0.0, ge=0.0, le=1.0)
     voxel_size: float | None = None
     target_voxel_size: float | None = None
     robust: Literal["none", "trim", "huber", "cauchy"] = "none"
@@ -140,10 +135,6 @@ class IcpOdometryConfig(_Frozen):
     #: no bias towards zero motion where the scan samples the surfaces differently than the map
     point_to_plane: bool = False
     map_voxel_size: float = Field(0.05, gt=0.0)
-    #: point-to-plane: keep each map scan's normals from when it joined the map (one estimate per scan)
-    #: instead of re-estimating every map point's normal from the whole current map (the default: cached
-    #: normals cut odometry time by half but raised the Intel relation error from 0.038 m to 0.060 m)
-    cache_scan_normals: bool = False
     #: a scan joins the local map when the sensor moved ≥ keyframe_distance (m) or turned ≥ keyframe_angle
     #: (rad) since the last one that did (0 = every scan); the map's k-d tree is rebuilt only then
     keyframe_distance: float = Field(0.0, ge=0.0)

@@ -34,14 +34,10 @@ class IcpTarget:
     (lazily) PCA normals. Points ``(N, d)`` in the target frame, metres."""
 
     def __init__(self, points: ArrayLike, voxel_size: float | None = None, normal_neighbors: int = 10,
-                 workers: int = -1, normals: ArrayLike | None = None) -> None:
-        """*normals*: unit normals ``(N, d)`` of *points* already known (e.g. kept with each scan of a
-        local map), so they are not re-estimated; not allowed together with *voxel_size*."""
+                 workers: int = -1) -> None:
         P = np.asarray(points, dtype=np.float64)
         if P.ndim != 2 or P.shape[1] not in (2, 3):
             raise GeometryError(f"target points must be (N, 2) or (N, 3), got shape {P.shape}")
-        if normals is not None and voxel_size:
-            raise GeometryError("target normals cannot be given together with a voxel size")
         self.points = voxel_downsample(P, voxel_size, mode="centroid") if voxel_size else P
         if len(self.points) < 3:
             raise DegenerateInputError(f"target has {len(self.points)} points; ICP needs at least 3")
@@ -50,11 +46,6 @@ class IcpTarget:
         self.normal_neighbors = normal_neighbors
         self.workers = workers
         self._normals: Array | None = None
-        if normals is not None:
-            N = np.asarray(normals, dtype=np.float64)
-            if N.shape != self.points.shape:
-                raise GeometryError(f"target normals must have the points' shape {self.points.shape}, got {N.shape}")
-            self._normals = N
 
     def normals(self, index: NDArray[np.intp] | None = None) -> Array:
         """Unit PCA normals (smallest-eigenvalue eigenvector of the k-neighbour scatter) of the

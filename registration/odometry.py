@@ -22,7 +22,6 @@ guess; otherwise a constant-velocity guess (the last increment) is used.
 from __future__ import annotations
 
 import abc
-import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Iterable
@@ -124,11 +123,6 @@ class Odometry(abc.ABC):
     def update(self, frame: Frame) -> OdometryStep:
         """Register one frame (time order) and return its pose and increment covariance."""
 
-    def local_normals(self, points_sensor: Array) -> Array | None:
-        """Normals (sensor frame) at points of the latest frame from the source's local map, or None when
-        the source keeps no map of its own (the caller then estimates them from the scan)."""
-        return None
-
     def run(self, frames: Iterable[Frame]) -> list[OdometryStep]:
         """Feed every frame; returns the steps (also kept in ``self.steps``)."""
         return [self.update(f) for f in frames]
@@ -205,63 +199,27 @@ class IcpOdometry(Odometry):
         """True when *pose* deviates from the wheel guess by more than the configured bounds."""
         c = self.config
         d = geo.relative(guess, pose)
-        if self._planar_map:
-            ang = abs(math.atan2(d[1, 0], d[0, 0]))
-            return bool((c.max_guess_deviation_m is not None and math.hypot(d[0, 3], d[1, 3]) > c.max_guess_deviation_m)
-                        or (c.max_guess_deviation_rad is not None and ang > c.max_guess_deviation_rad))
         return bool((c.max_guess_deviation_m is not None and np.linalg.norm(d[:3, 3]) > c.max_guess_deviation_m)
                     or (c.max_guess_deviation_rad is not None
-                        and np.linalg.norm(geo.so3_log(d[:3, :3])) > c.max_guess_deviation_rad))
+                        and geo.rotation_angle(d[:3, :3]) > c.max_guess_deviation_rad))
 
     def __init__(self, config: IcpOdometryConfig | None = None) -> None:
         super().__init__()
         self.config = config or IcpOdometryConfig()
-        # Each map scan: world-frame points and their normals (None until the first target that contains
-        # the scan estimates them, from that whole map; they are then kept, so a map of k scans costs
-        # one normal estimate per scan instead of k).
-        self._map: deque[list] = deque(maxlen=self.config.map_scans)
+        self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
         self._map_pose: Array | None = None
-        self._target: IcpTarget | None = None  # k-d tree and normals of the current map, reused until it changes
-
-    def _build_target(self) -> IcpTarget:
-        from .point_to_plane import estimate_normals
-
-        c = self.config.icp
-        pts = np.vstack([m[0] for m in self._map])
-        if not self.config.point_to_plane or not self.config.cache_scan_normals:
-            return IcpTarget(pts, None, c.normal_neighbors, c.workers)
-        tgt = IcpTarget(pts, None, c.normal_neighbors, c.workers, normals=np.zeros_like(pts))
-        for entry in self._map:
-            if entry[1] is None:
-                entry[1] = estimate_normals(entry[0], tgt.tree, c.normal_neighbors, 1) if len(pts) >= 3 else np.zeros_like(entry[0])
-        tgt._normals = np.vstack([m[1] for m in self._map])
-        return tgt
-
-    def local_normals(self, points_sensor: Array) -> Array | None:
-        """Unit normals (sensor frame) at *points_sensor* of the latest frame, estimated from the local
-        map (denser than one scan); None before the first frame."""
-        from .point_to_plane import estimate_normals
-
-        if not self._map:
-            return None
-        if self._target is None:
-            self._target = self._build_target()
-        d = points_sensor.shape[1]
-        R = self._pose[:d, :d]
-        world = points_sensor @ R.T + self._pose[:d, 3]
-        return estimate_normals(world, self._target.tree, self.config.icp.normal_neighbors, 1) @ R
+        self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
 
     def update(self, frame: Frame) -> OdometryStep:
         cfg = self.config
-        self._planar_map = frame.is_planar
         pts = _crop(frame.points, cfg.min_range, cfg.max_range)
         if self._prev_frame is None:
-            self._map.append([voxel_downsample(pts, cfg.map_voxel_size), None])
+            self._map.append(voxel_downsample(pts, cfg.map_voxel_size))
             self._map_pose = np.eye(4)
             return self._emit(frame, np.eye(4), None, None)
         guess = self._pose @ self._guess(frame, cfg.use_wheel_odometry)
         if self._target is None:
-            self._target = self._build_target()
+            self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
         target = self._target
         cov = accepted = None
         try:
@@ -274,11 +232,10 @@ class IcpOdometry(Odometry):
         if self._wheel_guided(frame) and self._too_far(guess, pose):
             pose, cov, accepted = guess, None, False  # ICP left the wheel odometry's basin: keep the guess
         moved = geo.relative(self._map_pose, pose)
-        turned = (abs(math.atan2(moved[1, 0], moved[0, 0])) if frame.is_planar
-                  else float(np.linalg.norm(geo.so3_log(moved[:3, :3]))))
+        turned = geo.rotation_angle(moved[:3, :3])
         if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance
                 or turned >= cfg.keyframe_angle):
-            self._map.append([geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)), None])
+            self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)))
             self._map_pose = pose
             self._target = None
         return self._emit(frame, pose, cov, accepted)

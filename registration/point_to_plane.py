@@ -63,7 +63,6 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     workers = _workers(len(S), config.workers)
     it = 0
     converged = False
-    alpha = config.tangent_weight
     R, t = T[:d, :d].copy(), T[:d, 3].copy()
     for gate in config.gates:
         converged = False
@@ -76,12 +75,9 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
                 raise DegenerateInputError(
                     f"point-to-plane ICP iteration {it}: {len(ok)} pairs within {gate} m (need {config.min_inliers})")
             m, n = moved[ok], normals[idx[ok]]
-            diff = m - tgt.points[idx[ok]]
-            e = np.einsum("ij,ij->i", diff, n)
+            e = np.einsum("ij,ij->i", m - tgt.points[idx[ok]], n)
             w = robust_weights(np.abs(e), config)
             J = _plane_rows(m, n)
-            if alpha > 0.0:
-                J, e, w = _with_tangent_rows(J, e, w, m, n, diff, alpha)
             Jw = J * w[:, None]
             try:
                 xi = np.linalg.solve(J.T @ Jw, -(Jw.T @ e))
@@ -110,27 +106,6 @@ def _plane_rows(m: Array, n: Array) -> Array:
     else:
         J[:, 3:] = np.cross(m, n)
     return J
-
-
-def _with_tangent_rows(J: Array, e: Array, w: Array, m: Array, n: Array, diff: Array, alpha: float
-                       ) -> tuple[Array, Array, Array]:
-    """Append the α-weighted residuals along the surface: one tangent t in 2D, in 3D the projection
-    (I − nnᵀ)(m − q) written in the target's tangent basis (two rows per pair)."""
-    d = m.shape[1]
-    if d == 2:
-        tan = np.column_stack([-n[:, 1], n[:, 0]])
-        et = alpha * np.einsum("ij,ij->i", diff, tan)
-        return np.vstack([J, alpha * _plane_rows(m, tan)]), np.concatenate([e, et]), np.concatenate([w, w])
-    # 3D: an orthonormal tangent pair per normal.
-    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    t1 = np.cross(n, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(n, t1)
-    rows, res = [J], [e]
-    for tan in (t1, t2):
-        rows.append(alpha * _plane_rows(m, tan))
-        res.append(alpha * np.einsum("ij,ij->i", diff, tan))
-    return np.vstack(rows), np.concatenate(res), np.concatenate([w, w, w])
 
 
 def _apply_se2_left(xi: Array, R: Array, t: Array) -> tuple[Array, Array]:

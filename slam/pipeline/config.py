@@ -32,7 +32,6 @@ class OdometryStageConfig(_Model):
     icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
     icp_max_guess_deviation_rad: float | None = Field(0.35, gt=0, description="... or turned this much more; the wheel guess is kept")
     icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
-    keyframe_map_normals: bool = Field(False, description="keyframe normals from the odometry's local map (reused by loop ICP targets; faster; its effect on Intel was not measured separately)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's

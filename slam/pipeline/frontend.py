@@ -43,9 +43,6 @@ class Keyframe:
         base_T_sensor: sensor on the robot.
         points: sensor-frame hit points used for loop-closure ICP (voxel-downsampled), metres.
         frame: the full scan (beams kept for 2D occupancy mapping).
-        normals: unit normals of *points* (sensor frame), from the odometry's local map when it keeps
-            one, else from the scan itself (PCA of 8 neighbours); the point-to-plane ICP targets of
-            loop verification and edge covariances reuse them.
     """
 
     id: int
@@ -55,7 +52,6 @@ class Keyframe:
     base_T_sensor: Array
     points: Array
     frame: Frame
-    normals: Array | None = None
 
 
 @dataclass
@@ -128,27 +124,14 @@ class FrontEnd:
         cfg = IcpConfig(gates=(c.edge_gate_m,), sigma=c.edge_sigma_m, covariance_model="plane", workers=1,
                         normal_neighbors=8)
         try:
-            res = evaluate_alignment(kf.points, IcpTarget(prev.points, normal_neighbors=8, workers=1,
-                                                          normals=prev.normals), rel_sensor, c.edge_gate_m, cfg)
+            res = evaluate_alignment(kf.points, IcpTarget(prev.points, normal_neighbors=8, workers=1), rel_sensor,
+                                     c.edge_gate_m, cfg)
         except DegenerateInputError:
             return None
         if res.degenerate or not np.all(np.isfinite(res.covariance)):
             return None
         A = G.adjoint(kf.base_T_sensor, planar=self._dof == 3)
         return A @ res.covariance @ A.T
-
-    def _normals(self, points: Array) -> Array | None:
-        """Normals of a new keyframe's points (sensor frame): the odometry's local map, else the scan."""
-        if len(points) < 3 or not self.config.odometry.keyframe_map_normals:
-            return None
-        n = self.odometry.local_normals(points)
-        if n is None:
-            from scipy.spatial import cKDTree
-
-            from registration.point_to_plane import estimate_normals
-
-            n = estimate_normals(points, cKDTree(points), 8, 1)
-        return n
 
     def _wheel_covariance(self, rel: Array) -> Array:
         c = self.config.odometry
@@ -180,9 +163,8 @@ class FrontEnd:
             c = self.config.odometry
             pts = pts[(r >= c.min_range) & (r <= c.max_range)]
             vs = 0.02 if frame.is_planar else 0.3
-            kpts = voxel_downsample(pts, vs)
             kf = Keyframe(len(self.keyframes), len(self.track.stamps) - 1, frame.stamp, pose,
-                          np.asarray(frame.base_T_sensor, dtype=float), kpts, frame, self._normals(kpts))
+                          np.asarray(frame.base_T_sensor, dtype=float), voxel_downsample(pts, vs), frame)
             if self.keyframes:
                 prev = self.keyframes[-1]
                 rel = G.relative(prev.odom_pose, pose)

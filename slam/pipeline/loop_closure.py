@@ -27,8 +27,7 @@ from registration import geometry as G
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError
 from registration.frame import Frame
-from registration.icp import IcpTarget
-from registration.icp import icp
+from registration.icp import IcpTarget, icp
 from registration.point_to_plane import icp_point_to_plane
 from slam.loops.descriptor import DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 
@@ -154,11 +153,7 @@ class LoopCloser:
                     and np.abs(G.so3_log(d[:, :3, :3])).max() < np.radians(0.1)):
                 return hit[1]
         pts = np.vstack([G.transform_points(T, keyframes[m].points) for T, m in zip(rel, range(lo, hi))])
-        normals = None
-        if all(keyframes[m].normals is not None for m in range(lo, hi)):
-            d = pts.shape[1]
-            normals = np.vstack([keyframes[m].normals @ T[:d, :d].T for T, m in zip(rel, range(lo, hi))])
-        target = IcpTarget(pts, normal_neighbors=8, workers=1, normals=normals)
+        target = IcpTarget(pts, normal_neighbors=8, workers=1)
         self._cache[i] = (rel, target)
         if len(self._cache) > 512:  # bounded memory: drop the oldest entries
             for key in list(self._cache)[:128]:
