@@ -213,3 +213,19 @@ def test_ctrl_c_leaves_no_output_or_the_previous_one(tmp_path, previous):
     else:
         assert not out.exists()
     assert _leftovers(tmp_path) == []
+
+
+def test_an_error_raised_while_handling_ctrl_c_counts_as_an_interrupt():
+    """Ctrl-C during a C extension's import surfaces as ImportError chained to the KeyboardInterrupt (seen with
+    gtsam on a cold start): the CLI reports it as an interrupt; unrelated errors are not."""
+    from slam.cli import _interrupted
+
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as ki:
+            raise ImportError("initialization failed") from ki
+    except ImportError as exc:
+        chained = exc
+    assert _interrupted(chained) and _interrupted(KeyboardInterrupt())
+    assert not _interrupted(ImportError("no module")) and not _interrupted(ValueError("x"))

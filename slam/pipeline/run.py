@@ -89,11 +89,19 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
 
 
 def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
-    """Run the pipeline over an iterable of :class:`Frame` (time order). BLAS runs single-threaded."""
+    """Run the pipeline over an iterable of :class:`Frame` (time order). BLAS runs single-threaded.
+
+    A frame generator is closed on the way out, also on an error or Ctrl-C, so a reader's
+    background thread stops here rather than at interpreter shutdown."""
     from slam.blas import single_blas_thread
 
-    with single_blas_thread():
-        return _run_slam(frames, config, progress)
+    try:
+        with single_blas_thread():
+            return _run_slam(frames, config, progress)
+    finally:
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
 
 
 def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None) -> SlamResult:
