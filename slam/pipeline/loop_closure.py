@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import geometry as G
+from registration import correlative
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError
 from registration.frame import Frame
@@ -60,6 +61,7 @@ class LoopStats:
     rejected_fitness: int = 0
     rejected_consistency: int = 0
     rejected_free_space: int = 0
+    rejected_correlative: int = 0
 
 
 def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 0.1, rel_margin: float = 0.02) -> float:
@@ -102,6 +104,7 @@ class LoopCloser:
                               chi2_factor=config.chi2_factor, covariance_model="plane", workers=1)
         self._icp_wide = self._icp.model_copy(update={"gates": (2.0,) + tuple(config.icp_gates)})
         self._cache: dict[int, tuple[Array, IcpTarget]] = {}
+        self._pyramids: dict[int, correlative.LikelihoodPyramid] = {}
         self._align = icp if config.icp_method == "point" else icp_point_to_plane
 
     # ------------------------------------------------------------------ candidates
@@ -136,11 +139,13 @@ class LoopCloser:
             self.index.add(kf.id, kf.points)
 
     # ------------------------------------------------------------------ verification
-    def _target(self, keyframes: list[Keyframe], poses: Array, i: int) -> IcpTarget:
-        """ICP target: points of keyframes i±k in keyframe i's sensor frame, from the current estimates.
+    def _target(self, keyframes: list[Keyframe], poses: Array, i: int) -> tuple[IcpTarget, correlative.LikelihoodPyramid | None]:
+        """ICP target: points of keyframes i±k in keyframe i's sensor frame, from the current estimates,
+        and (2D, when enabled) the likelihood pyramid of the same points for the correlative search.
 
         Cached per keyframe; rebuilt when a neighbour's pose relative to keyframe i changed by more
-        than 5 mm or 0.1° (e.g. after a loop closure), so revisits of one place reuse the k-d tree and normals.
+        than 5 mm or 0.1° (e.g. after a loop closure), so revisits of one place reuse the k-d tree,
+        normals and pyramid. Pyramids (~1–3 MB each) are kept for the 64 most recently used places.
         """
         k = self.config.submap_keyframes
         lo, hi = max(0, i - k), min(len(poses), i + k + 1)
@@ -149,16 +154,30 @@ class LoopCloser:
         hit = self._cache.get(i)
         if hit is not None and hit[0].shape == rel.shape:
             d = G.relative(hit[0], rel)
-            if (np.abs(d[:, :3, 3]).max() < 5e-3
-                    and np.abs(G.so3_log(d[:, :3, :3])).max() < np.radians(0.1)):
-                return hit[1]
-        pts = np.vstack([G.transform_points(T, keyframes[m].points) for T, m in zip(rel, range(lo, hi))])
-        target = IcpTarget(pts, normal_neighbors=8, workers=1)
-        self._cache[i] = (rel, target)
-        if len(self._cache) > 512:  # bounded memory: drop the oldest entries
-            for key in list(self._cache)[:128]:
-                del self._cache[key]
-        return target
+            if not (np.abs(d[:, :3, 3]).max() < 5e-3 and np.abs(G.so3_log(d[:, :3, :3])).max() < np.radians(0.1)):
+                hit = None
+        else:
+            hit = None
+        if hit is None:
+            pts = np.vstack([G.transform_points(T, keyframes[m].points) for T, m in zip(rel, range(lo, hi))])
+            hit = (rel, IcpTarget(pts, normal_neighbors=8, workers=1))
+            self._cache[i] = hit
+            self._pyramids.pop(i, None)
+            if len(self._cache) > 512:  # bounded memory: drop the oldest entries
+                for key in list(self._cache)[:128]:
+                    del self._cache[key]
+        c = self.config
+        if not (self.planar and c.correlative):
+            return hit[1], None
+        pyramid = self._pyramids.pop(i, None)
+        if pyramid is None:
+            res = c.correlative_resolution_m
+            w = int(np.ceil(max(c.correlative_window_m, c.descriptor_window_m) / res))
+            pyramid = correlative.LikelihoodPyramid(hit[1].points, res, res, levels=int(np.ceil(np.log2(2 * w + 1))))
+        self._pyramids[i] = pyramid  # most recently used last
+        if len(self._pyramids) > 64:
+            del self._pyramids[next(iter(self._pyramids))]
+        return hit[1], pyramid
 
     def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
                relative_cov: Array | None, source: str) -> LoopClosure | None:
@@ -167,9 +186,19 @@ class LoopCloser:
         self.stats.verified += 1
         kj = keyframes[j]
         try:
-            target = self._target(keyframes, poses, i)
+            target, pyramid = self._target(keyframes, poses, i)
+            start = guess_sensor
+            if pyramid is not None:
+                spatial = source == "spatial"
+                found = correlative.match(kj.points, pyramid, guess_sensor,
+                                          c.correlative_window_m if spatial else c.descriptor_window_m,
+                                          np.radians(c.correlative_window_deg if spatial else c.descriptor_window_deg))
+                if found.score < c.min_correlative_score:
+                    self.stats.rejected_correlative += 1
+                    return None
+                start = found.transform
             cfg = self._icp if source == "spatial" else self._icp_wide
-            res = self._align(kj.points, target, guess_sensor, cfg)
+            res = self._align(kj.points, target, start, cfg)
         except DegenerateInputError:
             self.stats.rejected_icp += 1
             return None
@@ -207,7 +236,7 @@ class LoopCloser:
             # Unique basin: restart from a perturbed guess and require the same answer.
             pert = G.xytheta_to_matrix(0.3, -0.3, 0.15) if self.planar else G.se3_exp([0.5, -0.5, 0.0, 0.0, 0.0, 0.1])
             try:
-                res2 = self._align(kj.points, target, guess_sensor @ pert, self._icp_wide)
+                res2 = self._align(kj.points, target, start @ pert, self._icp_wide)
             except DegenerateInputError:
                 self.stats.rejected_consistency += 1
                 return None
