@@ -4,7 +4,7 @@ Every keyframe, odometry edge and loop closure is recorded in a :class:`~slam.gr
 (written to ``graph.g2o``) and mirrored into the online solver. ``finish()`` runs the final batch
 optimisation (GTSAM Levenberg–Marquardt with robust kernels on loop edges, or our chordal solver),
 then drops loop closures the solution still violates by more than Cartographer's criterion
-(Hess et al. 2016, §VII-B: 20 cm / 1°) and solves again.
+(Hess et al. 2016, §VII-B: 20 cm / 1°) and solves again, for a few rounds.
 """
 
 from __future__ import annotations
@@ -110,15 +110,19 @@ class PipelineBackend:
         return bad
 
     def finish(self) -> Array:
-        """Final batch solve, prune violated closures, solve again; returns the keyframe poses."""
+        """Final batch solve, then up to ``prune_rounds`` rounds of: drop the closures the solution
+        violates, solve again (a closure pulled into line by an outlier shows only once that outlier
+        is gone). Returns the keyframe poses."""
         t0 = time.perf_counter()
         P = self.poses
         if self.config.final_batch and self.graph.num_edges > 0:
             P = self._solve_batch(P)
-            bad = self._violated_loops(P)
-            if bad:
+            for _ in range(self.loop_config.prune_rounds):
+                bad = self._violated_loops(P)
+                if not bad:
+                    break
                 self.graph = _without_edges(self.graph, set(bad))
-                self.pruned_loops = len(bad)
+                self.pruned_loops += len(bad)
                 P = self._solve_batch(P)
         self._poses = list(P)
         self.graph.set_poses(P)

@@ -95,6 +95,7 @@ class LoopConfig(_Model):
     covariance_floor_rad: float = Field(0.005, ge=0)
     prune_translation_m: float = Field(0.2, gt=0, description="after the final solve, drop closures violated by more than this ...")
     prune_rotation_deg: float = Field(1.0, gt=0, description="... or this, then solve again")
+    prune_rounds: int = Field(3, ge=0, description="rounds of prune-and-solve after the final solve (ends early when no closure is violated)")
 
 
 class BackendConfig(_Model):

@@ -1,0 +1,60 @@
+"""Final solve of the pipeline back end: closures the solution violates are pruned until none is."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from registration import geometry as G
+from slam.pipeline.backend import PipelineBackend
+from slam.pipeline.config import BackendConfig, LoopConfig
+from slam.pipeline.loop_closure import LoopClosure
+
+
+def square_loop_graph(rounds: int, outliers: list[tuple[int, int, np.ndarray]]) -> tuple[PipelineBackend, np.ndarray]:
+    """40 poses around a 10 m square (exact odometry), true closures between laps, plus *outliers*."""
+    be = PipelineBackend(BackendConfig(kind="gtsam"), LoopConfig(prune_rounds=rounds), planar=True)
+    truth = []
+    for k in range(40):
+        side, f = divmod(k % 20, 5)
+        xy = {0: (2.0 * f, 0.0), 1: (10.0, 2.0 * f), 2: (10.0 - 2.0 * f, 10.0), 3: (0.0, 10.0 - 2.0 * f)}[side]
+        truth.append(G.xytheta_to_matrix(xy[0], xy[1], side * np.pi / 2))
+    odo_cov = np.diag([0.02**2, 0.02**2, 0.005**2])
+    for k, T in enumerate(truth):
+        be.add_keyframe(k, T)
+        if k:
+            be.add_odometry(k - 1, k, G.relative(truth[k - 1], T), odo_cov)
+    lc_cov = np.diag([0.01**2, 0.01**2, 0.003**2])
+    for k in range(0, 20, 2):
+        be.add_loop(LoopClosure(k, k + 20, G.relative(truth[k], truth[k + 20]), lc_cov, 1.0, 0.01, "spatial"))
+    for i, j, err in outliers:
+        be.add_loop(LoopClosure(i, j, G.relative(truth[i], truth[j]) @ G.xytheta_to_matrix(*err), lc_cov, 1.0, 0.01, "spatial"))
+    be.update(True)
+    return be, np.array(truth)
+
+
+def violated(be: PipelineBackend, poses: np.ndarray) -> list[int]:
+    return be._violated_loops(poses)
+
+
+@pytest.mark.parametrize("rounds", [1, 3])
+def test_no_kept_closure_is_violated_after_pruning(rounds):
+    outliers = [(3, 27, np.array([1.5, -1.0, 0.3])), (5, 31, np.array([0.4, 0.6, -0.05])), (11, 36, np.array([0.25, 0.0, 0.02]))]
+    be, truth = square_loop_graph(rounds, outliers)
+    n_loops = sum(e.kind == "loop" for e in be.graph.edges())
+    P = be.finish()
+    kept = sum(e.kind == "loop" for e in be.graph.edges())
+    assert kept + be.pruned_loops == n_loops
+    if rounds == 3:
+        assert violated(be, P) == []
+    # The outliers are gone and the true closures hold the square: poses back within 5 cm of the truth.
+    assert be.pruned_loops >= len(outliers)
+    err = G.relative(truth[0], truth) @ np.linalg.inv(G.relative(P[0], P))  # both anchored at pose 0
+    assert np.abs(err[:, :2, 3]).max() < 0.05
+
+
+def test_zero_rounds_keeps_every_closure():
+    be, _ = square_loop_graph(0, [(3, 27, np.array([1.5, -1.0, 0.3]))])
+    n_loops = sum(e.kind == "loop" for e in be.graph.edges())
+    be.finish()
+    assert be.pruned_loops == 0 and sum(e.kind == "loop" for e in be.graph.edges()) == n_loops
