@@ -11,6 +11,7 @@ from slam.loops.descriptor import (
     best_shift,
     polar_descriptor,
     ring_key,
+    shift_distances,
 )
 
 
@@ -64,3 +65,22 @@ def test_index_ranks_true_place_first(rng):
     hits = idx.query(query, k=5)
     assert hits[0][0] == 17
     assert idx.query(query, k=5, exclude_after=17)[0][0] != 17
+
+
+def test_partial_overlap_cannot_score_better_than_its_share_of_columns():
+    """A 180° scan fills half the sectors; at a shift where two such scans share k columns of the u either
+    fills, the distance is at least 1 − k/u (cosine ≤ 1 per shared column, 0 for the others), so a
+    shift that overlaps one column cannot look like a perfect match."""
+    rng = np.random.default_rng(3)
+    n_rings, n_sectors = 20, 60
+    for _ in range(20):
+        q = np.zeros((n_rings, n_sectors))
+        c = np.zeros((n_rings, n_sectors))
+        q[:, :30] = rng.random((n_rings, 30))
+        c[:, (rng.integers(0, 60) + np.arange(30)) % 60] = rng.random((n_rings, 30))
+        D = shift_distances(q, c)[0]
+        for s in range(n_sectors):
+            cs = np.roll(c, s, axis=1)  # the candidate's columns that meet the query's at shift s
+            qn, cn = np.linalg.norm(q, axis=0) > 0, np.linalg.norm(cs, axis=0) > 0
+            both, union = (qn & cn).sum(), (qn | cn).sum()
+            assert D[s] >= 1.0 - both / union - 1e-9
