@@ -1,10 +1,12 @@
 """MCAP reader for ROS 2 (CDR) — and ROS 1 — messages: LaserScan / PointCloud2 frames with
 odometry, ground truth and TF.
 
-The container is read with the ``mcap`` library, streaming: with a summary section (chunk
-indexes) the ``SeekingReader`` visits chunks in log-time order holding one or a few chunks at
-a time; without one (a file written by a streaming recorder, or a truncated file) the file is read
-linearly, in file order (recorders write in arrival order).
+The container is read streaming. With a summary section (chunk indexes) the chunks are read by
+:mod:`slam.logs.mcap_chunks` — the file memory-mapped, each chunk decompressed once, payloads
+handed out as views, the next chunks decompressed on a worker thread — in the ``mcap`` library's
+log-time order, holding one or a few chunks at a time. Without one (a file written by a streaming
+recorder, or a truncated file), or with a chunk compression it does not know, the ``mcap``
+library reads the file linearly, in file order (recorders write in arrival order).
 Messages are decoded with types built from the schemas carried in the file
 (``ros2msg`` / ``ros2idl`` / ``ros1msg``), registered with rosbags' ``get_types_from_msg`` /
 ``get_types_from_idl``, so files written by any ROS 2 tool decode, not only our own. Chunk
@@ -14,12 +16,13 @@ CRCs are checked, so flipped bytes surface as an error naming the message, not a
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from registration.errors import LogFormatError
 
 from .base import TopicInfo
-from .ros_msgs import RawMessage, RosLogReader, build_typestore, normalize_msgtype
+from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages
+from .ros_msgs import RawMessage, RosLogReader, cached_typestore, normalize_msgtype
 
 __all__ = ["McapReader"]
 
@@ -28,34 +31,71 @@ _MESSAGE_ENCODINGS = {"cdr", "ros1"}
 
 
 class McapReader(RosLogReader):
-    """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_msgs.RosLogReader` for the arguments)."""
+    """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_msgs.RosLogReader` for the arguments).
+
+    Args:
+        validate_crcs: check chunk CRCs (catches flipped bytes in uncompressed chunks).
+        prefetch: chunks decompressed ahead on worker threads by the indexed path (0: none, all
+            work on the calling thread); memory grows by that many chunks, not with the log.
+        indexed: use the indexed chunk path when the file has chunk indexes (False: always the
+            ``mcap`` library; both yield the same messages in the same order).
+    """
 
     format = "mcap"
 
-    def __init__(self, path: str | Path, topic: str | None = None, *, validate_crcs: bool = True, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        topic: str | None = None,
+        *,
+        validate_crcs: bool = True,
+        prefetch: int = 1,
+        indexed: bool = True,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(path, topic, **kwargs)
-        self.validate_crcs = validate_crcs  # chunk CRCs: catches flipped bytes in uncompressed chunks
+        self.validate_crcs = validate_crcs
+        self.prefetch = prefetch
+        self.indexed = indexed
         self._topics: list[TopicInfo] | None = None
         self._store: Any = None
         self._encoding: dict[str, str] = {}  # topic -> message encoding
         self._bad_schema: dict[str, str] = {}  # topic -> why its schema cannot be used
+        self._summary_cache: tuple[Any] | None = None  # (summary or None,) once read
 
     # -- container ----------------------------------------------------------------------------
 
-    def _summary(self, fh) -> Any:
-        """The summary section, or None when the file has none or its footer is unreadable."""
-        from mcap.reader import SeekingReader
+    def _summary(self) -> Any:
+        """The summary section (read once per reader), or None when the file has none or its
+        footer is unreadable."""
+        if self._summary_cache is None:
+            from mcap.reader import SeekingReader
 
-        try:
-            return SeekingReader(fh).get_summary()
-        except Exception:  # truncated / corrupt footer: fall back to a linear read
-            return None
+            with self._open() as fh:
+                try:
+                    summary = SeekingReader(fh).get_summary()
+                except Exception:  # truncated / corrupt footer: fall back to a linear read
+                    summary = None
+            self._summary_cache = (summary,)
+        return self._summary_cache[0]
 
-    def _records(self, fh, topics: set[str] | None) -> Iterator[tuple[Any, Any, Any]]:
-        """(schema, channel, message) in log-time order; chunk-indexed when possible."""
+    def _use_index(self) -> bool:
+        """Whether the indexed chunk path can read this file: chunk indexes present, every
+        compression known, every indexed channel listed in the summary."""
+        summary = self._summary()
+        if not self.indexed or summary is None or not summary.chunk_indexes:
+            return False
+        return all(
+            ci.compression in SUPPORTED_COMPRESSIONS and all(c in summary.channels for c in ci.message_index_offsets)
+            for ci in summary.chunk_indexes
+        )
+
+    def _library_records(self, fh, topics: set[str] | None) -> Iterator[tuple[Any, Any, Any]]:
+        """(schema, channel, message) from the ``mcap`` library: in log-time order when the file is
+        chunk-indexed, else in file order."""
         from mcap.reader import NonSeekingReader, SeekingReader
 
-        summary = self._summary(fh)
+        summary = self._summary()
         fh.seek(0)
         if summary is not None and summary.chunk_indexes:
             return SeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=True)
@@ -83,17 +123,16 @@ class McapReader(RosLogReader):
         """Topics, types and counts: from the summary when present, else from one linear pass."""
         if self._topics is not None:
             return
-        with self._open() as fh:
-            summary = self._summary(fh)
-            schemas: dict[int, Any] = {}
-            channels: dict[int, Any] = {}
-            counts: dict[int, int] = {}
-            if summary is not None and summary.statistics is not None:
-                schemas, channels = dict(summary.schemas), dict(summary.channels)
-                counts = dict(summary.statistics.channel_message_counts)
-            else:
-                fh.seek(0)
-                for schema, channel, _msg in self._guard(self._records(fh, None), fh, {}):
+        summary = self._summary()
+        schemas: dict[int, Any] = {}
+        channels: dict[int, Any] = {}
+        counts: dict[int, int] = {}
+        if summary is not None and summary.statistics is not None:
+            schemas, channels = dict(summary.schemas), dict(summary.channels)
+            counts = dict(summary.statistics.channel_message_counts)
+        else:
+            with self._open() as fh:
+                for schema, channel, _msg in self._guard(self._library_records(fh, None), fh.tell, {}):
                     channels[channel.id] = channel
                     if schema is not None:
                         schemas[schema.id] = schema
@@ -114,13 +153,16 @@ class McapReader(RosLogReader):
             else:
                 defs[mt] = (mt, _SCHEMA_ENCODINGS[schema.encoding], schema.data.decode("utf-8", "replace"))
         try:
-            self._store = build_typestore(defs.values())
+            self._store = cached_typestore(tuple(defs.values()))
         except Exception as exc:  # rosbags raises several types for malformed definitions
             raise LogFormatError(self.path, "schema records", f"bad message definition: {exc}") from None
         self._topics = [TopicInfo(name, mt, n) for name, (mt, n) in sorted(per_topic.items())]
 
-    def _guard(self, it: Iterator, fh, counts: dict[str, int] | None = None) -> Iterator:
-        """Re-raise container errors as LogFormatError with the byte offset and last good message."""
+    def _guard(self, it: Iterator, tell: Callable[[], int], counts: dict[str, int] | None = None, topic_of=None) -> Iterator:
+        """Re-raise container errors as LogFormatError with the byte offset and last good message.
+
+        *tell* gives the file position when the error carries none; *topic_of(item)* the topic of
+        an item (default ``item[1].topic``), counted into *counts*."""
         last = "before the first message"
         while True:
             try:
@@ -128,14 +170,16 @@ class McapReader(RosLogReader):
             except StopIteration:
                 return
             except Exception as exc:  # mcap raises McapError, EndOfFile, struct.error, zstd errors, ...
-                try:
-                    pos = fh.tell()
-                except (OSError, ValueError):
-                    pos = -1
-                why = f"{type(exc).__name__}: {exc}".rstrip(": ")
+                pos = getattr(exc, "offset", None)
+                if pos is None:
+                    try:
+                        pos = tell()
+                    except (OSError, ValueError):
+                        pos = -1
+                why = str(exc) if isinstance(exc, ChunkError) else f"{type(exc).__name__}: {exc}".rstrip(": ")
                 raise LogFormatError(self.path, f"byte offset {pos} ({last})", f"corrupt or truncated MCAP: {why}") from None
             if counts is not None:
-                topic = item[1].topic
+                topic = item[1].topic if topic_of is None else topic_of(item)
                 counts[topic] = counts.get(topic, -1) + 1
                 last = f"after {topic} message {counts[topic]}"
             yield item
@@ -147,13 +191,33 @@ class McapReader(RosLogReader):
 
     def _raw_messages(self, topics: set[str] | None) -> Iterator[RawMessage]:
         self._load_meta()
+        counts: dict[str, int] = {}
+        if self._use_index():
+            yield from self._indexed_raw_messages(topics, counts)
+            return
         with self._open() as fh:
-            counts: dict[str, int] = {}
-            for schema, channel, message in self._guard(self._records(fh, topics), fh, counts):
+            for schema, channel, message in self._guard(self._library_records(fh, topics), fh.tell, counts):
                 topic = channel.topic
                 mt = normalize_msgtype(schema.name) if schema is not None else "(no schema)"
                 k = counts[topic]
                 yield RawMessage(k, topic, mt, int(message.log_time), message.data, f"{topic} message {k}")
+
+    def _indexed_raw_messages(self, topics: set[str] | None, counts: dict[str, int]) -> Iterator[RawMessage]:
+        """The chunk-indexed path (:func:`slam.logs.mcap_chunks.indexed_messages`); payloads are views."""
+        summary = self._summary()
+        meta: dict[int, tuple[str, str]] = {}  # channel id -> (topic, msgtype)
+        for cid, ch in summary.channels.items():
+            schema = summary.schemas.get(ch.schema_id)
+            meta[cid] = (ch.topic, normalize_msgtype(schema.name) if schema is not None else "(no schema)")
+        ids = None if topics is None else [cid for cid, (topic, _) in meta.items() if topic in topics]
+        it = indexed_messages(self.path, summary, ids, validate_crcs=self.validate_crcs, prefetch=self.prefetch)
+        try:
+            for cid, log_time, data in self._guard(it, lambda: -1, counts, topic_of=lambda item: meta[item[0]][0]):
+                topic, mt = meta[cid]
+                k = counts[topic]
+                yield RawMessage(k, topic, mt, log_time, data, f"{topic} message {k}")
+        finally:
+            it.close()
 
     def _decode(self, raw: RawMessage) -> Any:
         if raw.topic in self._bad_schema:
