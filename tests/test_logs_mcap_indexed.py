@@ -139,13 +139,13 @@ def test_read_ahead_is_bounded_and_threads_stop(tmp_path, monkeypatch):
     starts = np.sort([c.message_start_time for c in summary.chunk_indexes])
     assert len(starts) > 50
     loaded: list[int] = []
-    real = mcap_chunks.read_chunk
+    real = mcap_chunks.load_chunk
 
-    def counting(view, index, validate_crc=True):
+    def counting(view, index):
         loaded.append(index.chunk_start_offset)
-        return real(view, index, validate_crc)
+        return real(view, index)
 
-    monkeypatch.setattr(mcap_chunks, "read_chunk", counting)
+    monkeypatch.setattr(mcap_chunks, "load_chunk", counting)
     threads_before = threading.active_count()
     for prefetch in (0, 1, 2):
         loaded.clear()

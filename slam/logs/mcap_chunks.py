@@ -16,9 +16,9 @@ Message order is exactly the library's ``log_time_order=True`` order: sorted by 
 chunk_start_offset, position in the chunk)``, chunks being opened lazily in ``(message_start_time,
 chunk_start_offset)`` order, so memory holds only the chunks whose time range overlaps the current
 message (one chunk for a file written in time order). Because that opening order is known in
-advance, the next chunks can be decompressed and CRC-checked by worker threads while the caller
-decodes the current one (zstd, lz4 and zlib release the GIL): at most ``prefetch`` chunks beyond
-the open ones are held, so memory stays constant in the log length.
+advance, the next chunks can be decompressed by worker threads while the caller checks and
+decodes the current one (zstd, lz4, zlib and numpy's casts release the GIL): at most
+``prefetch`` chunks beyond the open ones are held, so memory stays constant in the log length.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ChunkError", "SUPPORTED_COMPRESSIONS", "indexed_messages", "read_chunk"]
+__all__ = ["ChunkError", "SUPPORTED_COMPRESSIONS", "check_crc", "chunk_messages", "indexed_messages", "load_chunk", "read_chunk"]
 
 SUPPORTED_COMPRESSIONS = ("", "zstd", "lz4")
 
@@ -74,16 +74,15 @@ def _lz4_decompress(data: memoryview, size: int) -> bytes:
 _DECOMPRESS: dict[str, Callable[[memoryview, int], Any]] = {"zstd": _zstd_decompress, "lz4": _lz4_decompress}
 
 
-def read_chunk(view: memoryview, index: Any, validate_crc: bool = True) -> memoryview:
-    """The decompressed records of the chunk described by the ``ChunkIndex`` *index*.
+def load_chunk(view: memoryview, index: Any) -> tuple[memoryview, int]:
+    """The decompressed records of the chunk described by the ``ChunkIndex`` *index* and the CRC-32
+    its header declares for them (0: none), not yet checked (:func:`check_crc`).
 
     Args:
         view: the whole file (a ``memoryview`` of its ``mmap``).
         index: ``mcap.records.ChunkIndex`` (``chunk_start_offset``, ``chunk_length``).
-        validate_crc: compare ``uncompressed_crc`` (when nonzero, per the spec) with the CRC-32 of
-            the records.
 
-    Returns a view of the records: into *view* for an uncompressed chunk, else into a fresh buffer.
+    The records are a view into *view* for an uncompressed chunk, else into a fresh buffer.
     Raises :class:`ChunkError` (with the chunk's offset) on any inconsistency.
     """
     start, length = int(index.chunk_start_offset), int(index.chunk_length)
@@ -115,9 +114,24 @@ def read_chunk(view: memoryview, index: Any, validate_crc: bool = True) -> memor
         out = data
     if len(out) != usize:
         raise ChunkError(start, f"chunk holds {len(out)} bytes of records, its header says {usize}")
-    if validate_crc and crc != 0 and zlib.crc32(out) != crc:
-        raise ChunkError(start, f"chunk CRC mismatch (expected {crc:#010x}, computed {zlib.crc32(out):#010x})")
-    return out
+    return out, crc
+
+
+def check_crc(records: memoryview, crc: int, offset: int) -> None:
+    """Raise :class:`ChunkError` when *crc* (nonzero: the spec's "CRC present") is not the CRC-32
+    of the decompressed *records* of the chunk at *offset*."""
+    if crc != 0:
+        got = zlib.crc32(records)
+        if got != crc:
+            raise ChunkError(offset, f"chunk CRC mismatch (expected {crc:#010x}, computed {got:#010x})")
+
+
+def read_chunk(view: memoryview, index: Any, validate_crc: bool = True) -> memoryview:
+    """:func:`load_chunk` followed by :func:`check_crc` (when *validate_crc*): the checked records."""
+    records, crc = load_chunk(view, index)
+    if validate_crc:
+        check_crc(records, crc, int(index.chunk_start_offset))
+    return records
 
 
 def chunk_messages(records: memoryview, offset: int, channels: Any, wanted: Any) -> list[tuple[int, int, int, int, memoryview]]:
@@ -214,9 +228,16 @@ def indexed_messages(
         mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)  # keeps its own descriptor
     view = memoryview(mm)
 
-    def load(ci: Any) -> list[tuple[int, int, int, int, memoryview]]:
-        records = read_chunk(view, ci, validate_crcs)
-        return chunk_messages(records, int(ci.chunk_start_offset), known, wanted)
+    def load(ci: Any) -> tuple[Any, memoryview, int]:
+        """First pass over a chunk's bytes, on a worker thread when prefetching (no GIL needed):
+        decompression — or, for an uncompressed chunk, the CRC, which also faults its pages in.
+        The CRC of a decompressed chunk is left to the consumer, who checks it while the worker
+        decompresses the next chunk: the two threads then carry similar loads."""
+        records, crc = load_chunk(view, ci)
+        if validate_crcs and not ci.compression:
+            check_crc(records, crc, int(ci.chunk_start_offset))
+            crc = 0
+        return ci, records, crc
 
     heap: list[tuple[int, int, int, int, memoryview]] = []
     loaded = _prefetched(chunks, load, prefetch)
@@ -228,8 +249,11 @@ def indexed_messages(
             while nxt < len(chunks) and (
                 not heap or (chunks[nxt].message_start_time, chunks[nxt].chunk_start_offset) < heap[0][:2]
             ):
-                msgs = next(loaded)
+                ci, records, crc = next(loaded)
                 nxt += 1
+                if validate_crcs:
+                    check_crc(records, crc, int(ci.chunk_start_offset))
+                msgs = chunk_messages(records, int(ci.chunk_start_offset), known, wanted)
                 if not heap and all(msgs[i][:3] <= msgs[i + 1][:3] for i in range(len(msgs) - 1)):
                     heap = msgs  # a sorted list is a heap: the common, time-ordered chunk costs no pushes
                 else:

@@ -15,6 +15,7 @@ CRCs are checked, so flipped bytes surface as an error naming the message, not a
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -30,6 +31,15 @@ _SCHEMA_ENCODINGS = {"ros2msg": "msg", "ros1msg": "msg", "ros2idl": "idl"}
 _MESSAGE_ENCODINGS = {"cdr", "ros1"}
 
 
+def default_prefetch() -> int:
+    """Chunks to decompress ahead: one worker beside the decoding thread on two CPUs, two on more."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cpus = os.cpu_count() or 1
+    return 0 if cpus < 2 else 1 if cpus == 2 else 2
+
+
 class McapReader(RosLogReader):
     """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_msgs.RosLogReader` for the arguments).
 
@@ -37,6 +47,7 @@ class McapReader(RosLogReader):
         validate_crcs: check chunk CRCs (catches flipped bytes in uncompressed chunks).
         prefetch: chunks decompressed ahead on worker threads by the indexed path (0: none, all
             work on the calling thread); memory grows by that many chunks, not with the log.
+            Default: 1 on a machine with two CPUs, 2 with more, 0 with one.
         indexed: use the indexed chunk path when the file has chunk indexes (False: always the
             ``mcap`` library; both yield the same messages in the same order).
     """
@@ -49,13 +60,13 @@ class McapReader(RosLogReader):
         topic: str | None = None,
         *,
         validate_crcs: bool = True,
-        prefetch: int = 1,
+        prefetch: int | None = None,
         indexed: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(path, topic, **kwargs)
         self.validate_crcs = validate_crcs
-        self.prefetch = prefetch
+        self.prefetch = default_prefetch() if prefetch is None else int(prefetch)
         self.indexed = indexed
         self._topics: list[TopicInfo] | None = None
         self._store: Any = None
