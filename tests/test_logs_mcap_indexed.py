@@ -222,3 +222,47 @@ def test_typestore_shared_between_readers(tmp_path):
     a.topics()
     b.topics()
     assert a._store is b._store
+
+
+_CLEAN: dict[str, tuple[bytes, list, list]] = {}
+
+
+def _clean_log(compression: str) -> tuple[bytes, list, list[tuple[int, int]]]:
+    """A small mixed log per compression (written once per session): its bytes, its messages and
+    the byte ranges [start, end) of every chunk record in it."""
+    if compression not in _CLEAN:
+        with tempfile.TemporaryDirectory() as d:
+            p = write_mixed_log(Path(d) / "x.mcap", compression, n=12, chunk_size=2048)
+            r = McapReader(p, indexed=False)
+            spans = [(c.chunk_start_offset, c.chunk_start_offset + c.chunk_length) for c in r._summary().chunk_indexes]
+            _CLEAN[compression] = (p.read_bytes(), raw_list(r), spans)
+    return _CLEAN[compression]
+
+
+def _outcome(reader):
+    try:
+        return raw_list(reader)
+    except LogFormatError:
+        return "error"
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(compression=st.sampled_from(COMPRESSIONS), where=st.floats(0.0, 1.0), size=st.integers(1, 24), fill=st.sampled_from([0x00, 0xFF, 0x5A]))
+def test_damaged_files_error_or_agree(compression, where, size, fill):
+    """Property: with a run of overwritten bytes anywhere in the file (chunks, indexes, summary,
+    footer) the reader raises LogFormatError — never another exception — or yields what the mcap
+    library yields; damage inside a chunk never yields different messages (CRC, decompression and
+    header checks catch it)."""
+    clean, clean_msgs, spans = _clean_log(compression)
+    data = bytearray(clean)
+    start = min(int(where * len(data)), len(data) - 1)
+    data[start : start + size] = bytes([fill]) * len(data[start : start + size])
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "d.mcap"
+        p.write_bytes(bytes(data))
+        fast = _outcome(McapReader(p, prefetch=1))
+        lib = _outcome(McapReader(p, indexed=False))
+    if fast != "error" and lib != "error":
+        assert fast == lib
+    if any(a <= start and start + size <= b for a, b in spans):
+        assert fast == "error" or fast == clean_msgs, (start, size)

@@ -7,10 +7,11 @@ uncompressed_size u64, uncompressed_crc u32, compression string (u32 length + UT
 (u64 length + bytes)``; the records inside are Schema / Channel / Message records, a Message
 (0x05) being ``channel_id u16, sequence u32, log_time u64, publish_time u64, data``.
 
-Why not ``mcap.reader.SeekingReader``: it reads each chunk into a ``bytes`` object, copies the
-decompressed records into a ``BytesIO`` and every message payload out of it again — three copies
-of every byte — and builds one Python object per record. Here the compressed bytes are read
-straight from the page cache (``mmap``), decompressed once, and the payloads are views.
+Why not ``mcap.reader.SeekingReader``: it reads each chunk into a ``bytes`` object, reads every
+message payload out of a ``BytesIO`` over the decompressed records into another one — two copies
+of every byte besides the decompression — and builds Python objects per record through a
+field-by-field stream reader. Here the compressed bytes come straight from the page cache
+(``mmap``), are decompressed once, and the payloads are views.
 
 Message order is exactly the library's ``log_time_order=True`` order: sorted by ``(log_time,
 chunk_start_offset, position in the chunk)``, chunks being opened lazily in ``(message_start_time,
@@ -87,7 +88,9 @@ def load_chunk(view: memoryview, index: Any) -> tuple[memoryview, int]:
     """
     start, length = int(index.chunk_start_offset), int(index.chunk_length)
     end = start + length
-    if start < 0 or end > len(view) or length < _CHUNK_HEAD.size:
+    if length < _CHUNK_HEAD.size:
+        raise ChunkError(start, f"indexed chunk length {length} is shorter than a chunk header")
+    if start < 0 or end > len(view):
         raise ChunkError(start, f"chunk [{start}, {end}) lies outside the file ({len(view)} bytes)")
     op, rec_len, _t0, _t1, usize, crc, clen = _CHUNK_HEAD.unpack_from(view, start)
     if op != _OP_CHUNK or rec_len != length - 9:
@@ -266,8 +269,8 @@ def indexed_messages(
     finally:
         loaded.close()
         heap.clear()
-        view.release()
         try:
+            view.release()
             mm.close()
         except BufferError:  # payload views still referenced by the caller: unmapped when they go
             pass

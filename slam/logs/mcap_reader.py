@@ -92,9 +92,12 @@ class McapReader(RosLogReader):
 
     def _use_index(self) -> bool:
         """Whether the indexed chunk path can read this file: chunk indexes present, every
-        compression known, every indexed channel listed in the summary."""
+        compression known, every indexed channel and every channel's schema listed in the summary.
+        Anything else goes to the ``mcap`` library, which then reports the problem as before."""
         summary = self._summary()
         if not self.indexed or summary is None or not summary.chunk_indexes:
+            return False
+        if any(ch.schema_id != 0 and ch.schema_id not in summary.schemas for ch in summary.channels.values()):
             return False
         return all(
             ci.compression in SUPPORTED_COMPRESSIONS and all(c in summary.channels for c in ci.message_index_offsets)

@@ -572,7 +572,7 @@ class RawMessage:
     topic: str
     msgtype: str
     log_time_ns: int
-    data: Any  # serialised bytes
+    data: Any  # the serialised message: bytes, or a read-only memoryview (MCAP indexed path)
     where: str = ""  # e.g. "/scan message 12", for error messages
 
 
