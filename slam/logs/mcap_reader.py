@@ -73,6 +73,7 @@ class McapReader(RosLogReader):
         self._encoding: dict[str, str] = {}  # topic -> message encoding
         self._bad_schema: dict[str, str] = {}  # topic -> why its schema cannot be used
         self._summary_cache: tuple[Any] | None = None  # (summary or None,) once read
+        self._index_ok: bool | None = None  # whether the indexed path can read the file
 
     # -- container ----------------------------------------------------------------------------
 
@@ -97,12 +98,14 @@ class McapReader(RosLogReader):
         summary = self._summary()
         if not self.indexed or summary is None or not summary.chunk_indexes:
             return False
-        if any(ch.schema_id != 0 and ch.schema_id not in summary.schemas for ch in summary.channels.values()):
-            return False
-        return all(
-            ci.compression in SUPPORTED_COMPRESSIONS and all(c in summary.channels for c in ci.message_index_offsets)
-            for ci in summary.chunk_indexes
-        )
+        if self._index_ok is None:
+            self._index_ok = all(
+                ch.schema_id == 0 or ch.schema_id in summary.schemas for ch in summary.channels.values()
+            ) and all(
+                ci.compression in SUPPORTED_COMPRESSIONS and all(c in summary.channels for c in ci.message_index_offsets)
+                for ci in summary.chunk_indexes
+            )
+        return self._index_ok
 
     def _library_records(self, fh, topics: set[str] | None) -> Iterator[tuple[Any, Any, Any]]:
         """(schema, channel, message) from the ``mcap`` library: in log-time order when the file is
