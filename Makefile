@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install system-deps bench clean
+.PHONY: demo test install system-deps bench peers clean
 
 # open3d needs libusb-1.0 at import time; install it with apt when missing and we are root.
 system-deps:
@@ -32,6 +32,13 @@ demo: install
 
 test: install
 	$(PY) -m pytest -n 2 --dist loadgroup -q
+
+# The optional peer of benchmarks/peers.py. kiss-slam's map-closures dependency caps numpy, pydantic
+# and typer below our pins (see pyproject.toml), so both go in without their dependency metadata.
+# `make peers VENV=.venv-peers` keeps it out of the main environment.
+peers: install
+	$(PY) -m pip install --quiet -e '.[test,bench,peers]'
+	$(PY) -m pip install --quiet --no-deps kiss-slam==0.0.2 map-closures==2.2.0
 
 bench: install
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b; done

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["trajectory_map_png", "error_along_png", "roc_png", "timings_png", "map_png"]
+__all__ = ["trajectory_map_png", "error_along_png", "roc_png", "timings_png", "map_png", "sweep_png"]
 
 _RC = {
     "font.size": 12,
@@ -175,4 +175,37 @@ def map_png(image: Array, resolution: float, origin: Sequence[float], label: str
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_title(title)
+        return _png(fig)
+
+
+def sweep_png(rows: Sequence[dict], swept: Sequence[str], x: str, y: str, xlabel: str, ylabel: str,
+              title: str = "Parameter sweep") -> bytes:
+    """Points ``(row[x], row[y])`` of a parameter grid; one line per setting of all but the last swept
+    name, joined along the last one, each point labelled with its value. Missing values (None) are skipped."""
+    plt = _plt()
+    swept = list(swept)
+    last, others = (swept[-1], swept[:-1]) if swept else (None, [])
+    series: dict[tuple, list[dict]] = {}
+    for r in rows:
+        series.setdefault(tuple(r[n] for n in others), []).append(r)
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(7, 5.5))
+        for key, rs in series.items():
+            pts = [(r[x], r[y], r[last] if last else None) for r in rs if r[x] is not None and r[y] is not None]
+            if not pts:
+                continue
+            label = ", ".join(f"{n}={v:g}" for n, v in zip(others, key)) or (last or "base setting")
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", lw=1.5, ms=6, label=label)
+            for px, py, v in pts:
+                if v is not None:
+                    ax.annotate(f"{v:g}", (px, py), textcoords="offset points", xytext=(5, 5), fontsize=9)
+        ax.set_ylim(-0.02, 1.05)
+        if x == "recall":
+            ax.set_xlim(-0.02, 1.05)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.grid(True, alpha=0.3)
+        if ax.lines:
+            ax.legend(loc="lower left", title=f"points labelled by {last}" if others else None)
         return _png(fig)

@@ -167,8 +167,13 @@ def build_report(
     relations: str | os.PathLike[str] | None = None,
     gt_map: str | os.PathLike[str] | None = None,
     max_diff: float = 0.01,
+    result_label: str | None = None,
 ) -> Report:
-    """Compute the metrics and figures for *result_dir* (see the module docstring)."""
+    """Compute the metrics and figures for *result_dir* (see the module docstring).
+
+    *result_label* is how the report names the result folder (default: *result_dir*), e.g. the
+    final folder when the report is written into a temporary one that is moved there afterwards.
+    """
     from slam.trajectory_io import read_trajectory, read_tum
 
     from . import plots
@@ -179,7 +184,7 @@ def build_report(
         raise InputFileError(rd, None, "result folder does not exist")
     rep = Report()
     m = rep.metrics
-    m["result_dir"] = str(rd)
+    m["result_dir"] = str(rd) if result_label is None else result_label
 
     trajs: dict[str, Any] = {}
     for label, name in (("estimate", "trajectory.tum"), ("odometry", "odometry.tum")):
@@ -231,7 +236,10 @@ def build_report(
         for label, t in trajs.items():
             res = evaluate_relations(t, rel)
             m["relations"][label] = res.to_dict()
-            rel_series[label] = (rel.t2[res.used], res.trans_errors)
+            if res.n_used:
+                rel_series[label] = (rel.t2[res.used], res.trans_errors)
+            else:  # e.g. a run over the first scans of a log only
+                rep.notes.append(f"{label}: none of the {len(rel)} relations joins two scans of the trajectory")
         if ds:
             m["relations"]["published"] = {
                 meth: {k: {"mean": v[0], "std": v[1]} for k, v in vals.items()} for meth, vals in PUBLISHED[ds].items()
@@ -446,9 +454,10 @@ def write_report(
     relations: str | os.PathLike[str] | None = None,
     gt_map: str | os.PathLike[str] | None = None,
     out_dir: str | os.PathLike[str] | None = None,
+    result_label: str | None = None,
 ) -> Report:
     """Build the report and write ``report.html`` and ``metrics.json`` into *out_dir* (default *result_dir*)."""
-    rep = build_report(result_dir, gt, relations, gt_map)
+    rep = build_report(result_dir, gt, relations, gt_map, result_label=result_label)
     od = Path(out_dir) if out_dir is not None else Path(result_dir)
     with atomic_open(od / "metrics.json", "w", encoding="utf-8") as fh:
         json.dump(rep.metrics, fh, indent=2)

@@ -112,7 +112,12 @@ class FastGPOM:
         if self.hyp is None:
             self.hyp = initial_hyperparameters(self.config.gp, X, y, xb)
         margin = 0.5 * np.sqrt(2.0) * geom.resolution
-        rows, cols = geom.window(world_T_sensor[:2, 3], float(bs.outer.max()) + margin)
+        # The fan is star-shaped about the sensor: its bounding box is that of the sensor and the outer
+        # ring's vertices (far smaller than the max-range square indoors).
+        a = bs.angles
+        ring = np.column_stack([bs.outer * np.cos(a), bs.outer * np.sin(a)]) @ world_T_sensor[:2, :2].T
+        ring = np.vstack([ring, np.zeros((1, 2))]) + world_T_sensor[:2, 3]
+        rows, cols = geom.window_box(ring.min(axis=0) - 2 * margin, ring.max(axis=0) + 2 * margin)
         if rows.stop <= rows.start or cols.stop <= cols.start:
             return None
         x, yy = geom.window_in_frame(rows, cols, inverse(world_T_sensor))

@@ -62,12 +62,16 @@ class GridGeometry:
 
     def window(self, centre: Array, radius: float) -> tuple[slice, slice]:
         """(rows, cols) slices of the cells whose centres may lie within *radius* of *centre*, clipped."""
-        cx, cy = float(centre[0]), float(centre[1])
+        c = np.asarray(centre, dtype=float)[:2]
+        return self.window_box(c - radius, c + radius)
+
+    def window_box(self, xy_min: Array, xy_max: Array) -> tuple[slice, slice]:
+        """(rows, cols) slices of the cells whose centres may lie in the box [xy_min, xy_max] (m), clipped."""
         r = self.resolution
-        ix0 = max(0, int(np.floor((cx - radius - self.origin[0]) / r)))
-        ix1 = min(self.shape[1], int(np.ceil((cx + radius - self.origin[0]) / r)) + 1)
-        iy0 = max(0, int(np.floor((cy - radius - self.origin[1]) / r)))
-        iy1 = min(self.shape[0], int(np.ceil((cy + radius - self.origin[1]) / r)) + 1)
+        ix0 = max(0, int(np.floor((float(xy_min[0]) - self.origin[0]) / r)))
+        ix1 = min(self.shape[1], int(np.ceil((float(xy_max[0]) - self.origin[0]) / r)) + 1)
+        iy0 = max(0, int(np.floor((float(xy_min[1]) - self.origin[1]) / r)))
+        iy1 = min(self.shape[0], int(np.ceil((float(xy_max[1]) - self.origin[1]) / r)) + 1)
         return slice(iy0, max(iy0, iy1)), slice(ix0, max(ix0, ix1))
 
     def window_in_frame(self, rows: slice, cols: slice, frame_T_grid: Array) -> tuple[Array, Array]:

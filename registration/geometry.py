@@ -17,6 +17,8 @@ stacks are processed without Python loops.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -45,6 +47,7 @@ __all__ = [
     "so3_hat",
     "so3_exp",
     "so3_log",
+    "rotation_angle",
     "se3_exp",
     "se3_log",
     "se2_exp",
@@ -222,6 +225,14 @@ def so3_exp(w: ArrayLike) -> Array:
     b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
     K = so3_hat(w)
     return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def rotation_angle(R: ArrayLike) -> float:
+    """Angle (rad, in [0, π]) of a 3×3 rotation: atan2(½‖vee(R − Rᵀ)‖, ½(tr R − 1)), accurate near 0 and π
+    and much cheaper than ``‖so3_log(R)‖`` for a scalar test."""
+    R = np.asarray(R, dtype=float)
+    s = 0.5 * math.sqrt((R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2)
+    return math.atan2(s, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
 
 
 def so3_log(R: ArrayLike) -> Array:

@@ -201,12 +201,12 @@ class IcpOdometry(Odometry):
         d = geo.relative(guess, pose)
         return bool((c.max_guess_deviation_m is not None and np.linalg.norm(d[:3, 3]) > c.max_guess_deviation_m)
                     or (c.max_guess_deviation_rad is not None
-                        and np.linalg.norm(geo.so3_log(d[:3, :3])) > c.max_guess_deviation_rad))
+                        and geo.rotation_angle(d[:3, :3]) > c.max_guess_deviation_rad))
 
     def __init__(self, config: IcpOdometryConfig | None = None) -> None:
         super().__init__()
         self.config = config or IcpOdometryConfig()
-        self._map: deque[Array] = deque(maxlen=self.config.map_scans)
+        self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
         self._map_pose: Array | None = None
         self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
 
@@ -214,7 +214,7 @@ class IcpOdometry(Odometry):
         cfg = self.config
         pts = _crop(frame.points, cfg.min_range, cfg.max_range)
         if self._prev_frame is None:
-            self._map.append(geo.transform_points(np.eye(4), voxel_downsample(pts, cfg.map_voxel_size)))
+            self._map.append(voxel_downsample(pts, cfg.map_voxel_size))
             self._map_pose = np.eye(4)
             return self._emit(frame, np.eye(4), None, None)
         guess = self._pose @ self._guess(frame, cfg.use_wheel_odometry)
@@ -232,7 +232,7 @@ class IcpOdometry(Odometry):
         if self._wheel_guided(frame) and self._too_far(guess, pose):
             pose, cov, accepted = guess, None, False  # ICP left the wheel odometry's basin: keep the guess
         moved = geo.relative(self._map_pose, pose)
-        turned = float(np.linalg.norm(geo.so3_log(moved[:3, :3])))
+        turned = geo.rotation_angle(moved[:3, :3])
         if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance
                 or turned >= cfg.keyframe_angle):
             self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)))

@@ -8,13 +8,15 @@ the eigenvectors of the smallest eigenvalue of the k-neighbour scatter matrix (H
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from .config import IcpConfig
 from .errors import DegenerateInputError
-from .geometry import se2_exp, se3_exp
+from .geometry import se3_exp
 from .icp import IcpResult, IcpTarget, _as_target, _prepare, _workers, evaluate_alignment, robust_weights
 
 Array = NDArray[np.float64]
@@ -58,35 +60,63 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     S, T = _prepare(source, tgt, init, config)
     d = tgt.dim
     normals = tgt.normals()
-    exp = se2_exp if d == 2 else se3_exp
     workers = _workers(len(S), config.workers)
     it = 0
     converged = False
+    R, t = T[:d, :d].copy(), T[:d, 3].copy()
     for gate in config.gates:
         converged = False
         while it < config.max_iterations:
             it += 1
-            moved = S @ T[:d, :d].T + T[:d, 3]
+            moved = S @ R.T + t
             dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=workers)
-            ok = np.flatnonzero(np.isfinite(dist))
+            ok = np.flatnonzero(dist < np.inf)
             if len(ok) < config.min_inliers:
                 raise DegenerateInputError(
                     f"point-to-plane ICP iteration {it}: {len(ok)} pairs within {gate} m (need {config.min_inliers})")
             m, n = moved[ok], normals[idx[ok]]
             e = np.einsum("ij,ij->i", m - tgt.points[idx[ok]], n)
             w = robust_weights(np.abs(e), config)
-            if d == 2:
-                J = np.column_stack([n, m[:, 0] * n[:, 1] - m[:, 1] * n[:, 0]])
-            else:
-                J = np.column_stack([n, np.cross(m, n)])
-            A = J.T @ (J * w[:, None])
-            b = -J.T @ (w * e)
+            J = _plane_rows(m, n)
+            Jw = J * w[:, None]
             try:
-                xi = np.linalg.solve(A, b)
+                xi = np.linalg.solve(J.T @ Jw, -(Jw.T @ e))
             except np.linalg.LinAlgError as exc:
                 raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations") from exc
-            T = exp(xi) @ T
+            if d == 2:
+                R, t = _apply_se2_left(xi, R, t)
+            else:
+                E = se3_exp(xi)
+                R, t = E[:3, :3] @ R, E[:3, :3] @ t + E[:3, 3]
             if np.linalg.norm(xi[: d]) < config.tol_translation and np.linalg.norm(xi[d:]) < config.tol_rotation:
                 converged = True
                 break
+    T = np.eye(4)
+    T[:d, :d], T[:d, 3] = R, t
     return evaluate_alignment(S, tgt, T, config.gates[-1], config, it, converged)
+
+
+def _plane_rows(m: Array, n: Array) -> Array:
+    """Jacobian rows ``[nᵀ, (m × n)ᵀ]`` of nᵀ(m − q) under a left increment of the moved points *m*."""
+    d = m.shape[1]
+    J = np.empty((len(m), 3 if d == 2 else 6))
+    J[:, :d] = n
+    if d == 2:
+        J[:, 2] = m[:, 0] * n[:, 1] - m[:, 1] * n[:, 0]
+    else:
+        J[:, 3:] = np.cross(m, n)
+    return J
+
+
+def _apply_se2_left(xi: Array, R: Array, t: Array) -> tuple[Array, Array]:
+    """``Exp(ξ) · (R, t)`` for ξ = (ρx, ρy, θ) — :func:`registration.geometry.se2_exp` in scalar form
+    (this runs once per ICP iteration, where numpy's per-call overhead would dominate)."""
+    rx, ry, th = float(xi[0]), float(xi[1]), float(xi[2])
+    c, s = math.cos(th), math.sin(th)
+    if abs(th) < 1e-9:
+        a, b = 1.0 - th * th / 6.0, th / 2.0
+    else:
+        a, b = s / th, (1.0 - c) / th
+    ex, ey = a * rx - b * ry, b * rx + a * ry
+    E = np.array([[c, -s], [s, c]])
+    return E @ R, E @ t + (ex, ey)

@@ -41,7 +41,7 @@ class KeyframeSelector:
             return True
         rel = G.relative(self._last_pose, pose)
         dist = float(np.linalg.norm(rel[:3, 3]))
-        ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
+        ang = G.rotation_angle(rel[:3, :3])
         c = self.config
         if dist >= c.distance_m or ang >= c.angle_rad or stamp - self._last_stamp >= c.time_s:
             self._accept(stamp, pose)

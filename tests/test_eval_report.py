@@ -161,3 +161,23 @@ def test_report_relations_table_with_published_numbers(tmp_path):
     page = (rd / "report.html").read_text()
     assert "Kümmerle relation metric" in page and "0.0229 ± 0.0239" in page and "0.031 ± 0.026" in page
     assert any(f.title.startswith("Relation error") for f in rep.figures)
+
+
+def test_report_when_no_relation_joins_two_scans(tmp_path):
+    """Relations all beyond the trajectory's stamps (a short run over the start of a log): the report is
+    still written, every relation counts as missing, and a note says none was usable."""
+    pytest.importorskip("PIL.Image")
+    from evaluation.report import write_report
+
+    rd = tmp_path / "run"
+    rd.mkdir()
+    gt = _gt_traj(40)
+    write_tum(rd / "trajectory.tum", gt)
+    later = gt.stamps[-1] + 100.0 + np.arange(5.0)
+    rows = np.column_stack([later, later + 0.5, np.zeros((5, 6))])
+    (tmp_path / "x.relations").write_text("".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows))
+    rep = write_report(rd, relations=tmp_path / "x.relations")
+    rel = json.loads((rd / "metrics.json").read_text())["relations"]["estimate"]
+    assert rel["n_used"] == 0 and rel["n_missing"] == 5
+    assert any("none of the 5 relations" in n for n in rep.notes)
+    assert (rd / "report.html").stat().st_size > 0

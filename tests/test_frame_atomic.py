@@ -82,3 +82,59 @@ def test_atomic_output_has_umask_permissions(tmp_path):
     finally:
         os.umask(mask)
     assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o644
+
+
+@pytest.fixture
+def default_sigint():
+    """Python's own SIGINT handler (KeyboardInterrupt) for the test, whatever the test runner set."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_while_moving_in_is_held_until_every_file_is_there(tmp_path, monkeypatch, default_sigint):
+    """A real SIGINT arriving while a run's files replace a previous run's: the KeyboardInterrupt comes
+    only after the last file is in place (all new, none old), and no temporary folder is left."""
+    import os
+    import signal
+
+    import registration.atomic as atomic
+
+    out = tmp_path / "run"
+    with atomic_directory(out) as d:
+        for name in ("a.txt", "b.txt", "c.txt"):
+            (d / name).write_text("old")
+    real_replace = os.replace
+    calls = []
+
+    def replace_and_interrupt(src, dst):  # the user presses Ctrl-C as the first file is moved
+        if not calls:
+            os.kill(os.getpid(), signal.SIGINT)
+        calls.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", replace_and_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_directory(out) as d:
+            for name in ("a.txt", "b.txt", "c.txt"):
+                (d / name).write_text("new")
+    assert len(calls) == 3
+    assert [(out / n).read_text() for n in ("a.txt", "b.txt", "c.txt")] == ["new"] * 3
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is restored
+
+
+def test_new_folder_appears_in_one_step(tmp_path, monkeypatch):
+    """A folder that did not exist is the temporary folder renamed (no file-by-file move)."""
+    import os
+
+    import registration.atomic as atomic
+
+    moved = []
+    monkeypatch.setattr(atomic.os, "replace", lambda s, d: moved.append(d) or os.rename(s, d))
+    with atomic_directory(tmp_path / "new") as d:
+        (d / "x.txt").write_text("1")
+    assert moved == [] and (tmp_path / "new" / "x.txt").read_text() == "1"
+    assert [p.name for p in tmp_path.iterdir()] == ["new"]

@@ -79,6 +79,16 @@ def test_so3_exp_log_round_trip(rng):
     np.testing.assert_allclose(G.so3_log(G.so3_exp(w)), w, atol=1e-10)
 
 
+def test_rotation_angle_is_the_norm_of_the_rotation_vector(rng):
+    """rotation_angle(Exp(w)) = |w| for |w| in [0, π], tiny and near-π angles included."""
+    w = rng.normal(size=(300, 3))
+    ang = rng.uniform(0, np.pi, size=300)
+    ang[:5] = [0.0, 1e-12, 1e-7, np.pi - 1e-7, np.pi]
+    w *= (ang / np.linalg.norm(w, axis=1))[:, None]
+    got = np.array([G.rotation_angle(R) for R in G.so3_exp(w)])
+    np.testing.assert_allclose(got, ang, atol=1e-12, rtol=1e-10)
+
+
 def test_se3_exp_log_round_trip_and_matches_gtsam(rng):
     """se3_log inverts se3_exp, and both equal gtsam.Pose3.Expmap/Logmap up to the (φ, ρ) ordering."""
     xi = rng.normal(size=(50, 6))

@@ -23,8 +23,9 @@ def _ros1_store():
     return ts
 
 
-def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False):
-    """A ROS 1 bag with /scan (LaserScan), /odom (Odometry), /tf_static (mount) and optionally /points."""
+def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False, compression=None, chunk_threshold=None):
+    """A ROS 1 bag with /scan (LaserScan), /odom (Odometry), /tf_static (mount) and optionally /points
+    (chunks *compression* ``"bz2"``/``"lz4"`` when given, of about *chunk_threshold* bytes)."""
     from rosbags.rosbag1 import Writer
 
     ts = _ros1_store()
@@ -43,7 +44,12 @@ def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False):
             orientation=Ty["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
         )
 
-    with Writer(path) as w:
+    w = Writer(path)
+    if compression is not None:
+        w.set_compression(getattr(Writer.CompressionFormat, compression.upper()))
+    if chunk_threshold is not None:
+        w.chunk_threshold = chunk_threshold
+    with w:
         cs = w.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=ts)
         co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
         ct = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)

@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "slam.cli.solve_cmd",
     "slam.cli.map_cmd",
     "slam.cli.run_cmd",
+    "slam.cli.loops_cmd",
 )
 
 app = typer.Typer(
@@ -55,6 +56,19 @@ for _name in COMMAND_MODULES:
     importlib.import_module(_name).register(app, eval_app)
 
 
+def _interrupted(exc: BaseException) -> bool:
+    """True when *exc* is, or was raised while handling, a KeyboardInterrupt (e.g. a C extension's
+    import failing because Ctrl-C arrived during its initialisation)."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: run the typer app, turning project errors into one line and exit 2."""
     try:
@@ -64,5 +78,16 @@ def main(argv: list[str] | None = None) -> None:
         print(f"error: {msg}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        sys.exit(130)
+    except SystemExit as exc:
+        # typer turns a KeyboardInterrupt inside a command into a silent exit 130 (and no command
+        # exits 130 on its own): say why.
+        if exc.code == 130:
+            print("error: interrupted", file=sys.stderr)
+        raise
+    except Exception as exc:
+        if not _interrupted(exc):
+            raise
         print("error: interrupted", file=sys.stderr)
         sys.exit(130)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 
 import typer
@@ -23,25 +24,54 @@ def _config(config: Path | None, overrides: dict):  # type: ignore[no-untyped-de
     return SlamConfig.model_validate(data)
 
 
-def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = False) -> dict:  # type: ignore[no-untyped-def]
-    """Run the pipeline on *log*, write the outputs into *out*, return the summary dict."""
+class OnError(str, Enum):
+    stop = "stop"
+    skip = "skip"
+
+
+def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = False,  # type: ignore[no-untyped-def]
+            reference=None) -> dict:
+    """Run the pipeline on *log*, write the outputs into *out*, return the summary dict.
+
+    ``cfg.on_error``: ``"stop"`` ends the run at the first corrupt record (LogFormatError, nothing
+    written); ``"skip"`` leaves corrupt records out, and the summary counts them
+    (``skipped_scans``: records skipped — scans, other messages, chunks or a cut tail — and
+    ``errors``: one ``file:pos: what`` line each). With a *reference*
+    (:class:`slam.cli.run_eval.Reference`) the evaluation report is written into *out* too; its
+    headline lines are returned under ``"evaluation"``. Every file, the report included, is moved
+    into *out* only once all are written.
+    """
+    import json
     import resource
     import time
 
-    from slam.logs import open_log
+    from registration.errors import LogFormatError
+    from slam.logs import SkipLog, open_log
     from slam.pipeline.outputs import write_outputs
     from slam.pipeline.run import run_slam
 
+    from .run_eval import GroundTruthRecorder, write_evaluation
+
     reader = open_log(log, topic)
+    skipped = SkipLog() if cfg.on_error == "skip" else None
+    recorder = GroundTruthRecorder() if reference is not None and reference.gt_in_frames else None
+    frames = reader.frames(on_skip=skipped)
+    if recorder is not None:
+        frames = recorder.wrap(frames)
     t0 = time.perf_counter()
     if quiet:
-        result = run_slam(reader.frames(), cfg)
+        result = run_slam(frames, cfg)
     else:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        total = reader.info().scans if cfg.max_scans is None else None
-        if cfg.max_scans is not None:
-            total = cfg.max_scans
+        total = cfg.max_scans
+        if total is None:
+            try:
+                total = reader.info().scans
+            except LogFormatError:
+                if skipped is None:
+                    raise
+                total = None  # a damaged log: the run reports what it skips
         with Progress(TextColumn("[bold]slam run"), BarColumn(), TextColumn("{task.completed}/{task.total} scans"),
                       TextColumn("{task.fields[rate]:.0f} scans/s  keyframes {task.fields[kf]}  closures {task.fields[lc]}"),
                       TimeElapsedColumn(), transient=True) as bar:
@@ -52,8 +82,10 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
                     bar.update(task, completed=p.scans, rate=p.scans / max(p.elapsed_s, 1e-9), kf=p.keyframes,
                                lc=p.loop_closures)
 
-            result = run_slam(reader.frames(), cfg, progress)
+            result = run_slam(frames, cfg, progress)
     wall_run = time.perf_counter() - t0
+    if skipped is not None:
+        result.skipped_scans, result.errors = len(skipped), skipped.lines()
     n = len(result.stamps)
     summary = {
         "log": str(log),
@@ -64,23 +96,29 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         "dimension": 2 if result.planar else 3,
         "stage_times_s": result.stage_times_s,
         "map_scans_fused": result.map_builder.scans_fused if result.map_builder else 0,
+        "on_error": cfg.on_error,
+        "skipped_scans": result.skipped_scans,
+        "errors": result.errors,
     }
     t1 = time.perf_counter()
-    write_outputs(out, result, result.occupancy_map, cfg, summary | {"wall_time_s": None})
-    wall = time.perf_counter() - t0
-    summary["stage_times_s"]["outputs_s"] = time.perf_counter() - t1
-    summary["wall_time_s"] = wall
-    summary["scans_per_second"] = n / wall_run if wall_run > 0 else 0.0
-    summary["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    # Rewrite the summary with the final wall time (a single small atomic file).
-    import json
+    evaluation: list[str] = []
 
-    from registration.atomic import atomic_open
+    def finish(folder: Path) -> None:
+        """Complete summary.json (final timings) and the evaluation report, before the move into *out*."""
+        summary["stage_times_s"]["outputs_s"] = time.perf_counter() - t1
+        summary["wall_time_s"] = time.perf_counter() - t0
+        summary["scans_per_second"] = n / wall_run if wall_run > 0 else 0.0
+        summary["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        full = json.loads((folder / "summary.json").read_text())
+        full.update(summary)
+        with open(folder / "summary.json", "w") as fh:
+            json.dump(full, fh, indent=2, default=float)
+        if reference is not None:
+            evaluation.extend(write_evaluation(folder, reference, recorder, result.stamps, str(out)))
 
-    full = json.loads((out / "summary.json").read_text())
-    full.update(summary)
-    with atomic_open(out / "summary.json") as fh:
-        json.dump(full, fh, indent=2, default=float)
+    write_outputs(out, result, result.occupancy_map, cfg, summary | {"wall_time_s": None}, before_commit=finish)
+    if reference is not None:
+        summary["evaluation"] = evaluation
     return summary
 
 
@@ -93,21 +131,46 @@ def run(
     map_method: str | None = typer.Option(None, "--map", help="fastgpom, gpom, logodds or none."),
     topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),
     max_scans: int | None = typer.Option(None, "--max-scans", help="Stop after this many scans."),
+    on_error: OnError | None = typer.Option(None, "--on-error", help="A corrupt record in the log: stop the run (default; "
+                                            "nothing is written) or skip it and count it in summary.json."),
+    evaluate: bool = typer.Option(False, "--eval", help="Evaluate the run against <log stem>.relations beside the log "
+                                  "or the log's ground truth; writes report.html and metrics.json."),
+    relations: Path | None = typer.Option(None, "--relations", help="Relations file to evaluate against (implies --eval)."),
+    gt: Path | None = typer.Option(None, "--gt", help="Ground-truth trajectory (TUM/KITTI, or a log with ground truth) "
+                                   "to evaluate against (implies --eval)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Run SLAM on LOG: odometry, keyframes, verified loop closures, pose graph, Fast-GPOM map, all outputs."""
-    overrides = {"odometry.method": odometry, "backend.kind": backend, "max_scans": max_scans}
+    overrides = {"odometry.method": odometry, "backend.kind": backend, "max_scans": max_scans,
+                 "on_error": on_error.value if on_error is not None else None}
     if map_method is not None:
         overrides["mapping.enabled"] = map_method != "none"
         if map_method != "none":
             overrides["mapping.params.method"] = map_method
     cfg = _config(config, overrides)
-    s = run_log(log, out, cfg, topic, quiet)
+    reference = None
+    if evaluate or relations is not None or gt is not None:
+        from slam.logs import open_log
+
+        from .run_eval import find_reference
+
+        reference = find_reference(log, open_log(log, topic), relations, gt)
+    typer.echo(f"log: {log}")
+    if reference is not None:
+        typer.echo(f"evaluate against: {reference.describe()}")
+    s = run_log(log, out, cfg, topic, quiet, reference)
     typer.echo(f"scans: {s['scans']}")
     typer.echo(f"keyframes: {s['keyframes']}")
     typer.echo(f"loop_closures: {s['loop_closures']}")
     typer.echo(f"wall_time_s: {s['wall_time_s']:.2f}")
+    for line in s.get("evaluation", []):
+        typer.echo(line)
+    if reference is not None:
+        typer.echo(f"report: {(out / 'report.html').resolve()}")
     typer.echo(f"results: {out.resolve()}")
+    if s["skipped_scans"]:
+        typer.echo(f"warning: skipped {s['skipped_scans']} corrupt record(s) of {log}, listed under 'errors' in "
+                   f"summary.json; the first: {s['errors'][0]}", err=True)
 
 
 def register(app: typer.Typer, eval_app: typer.Typer) -> None:

@@ -6,9 +6,9 @@ from pathlib import Path
 
 from registration.errors import LogFormatError
 
-from .base import LogInfo, LogReader, TopicInfo
+from .base import LogInfo, LogReader, SkipHandler, SkipLog, TopicInfo
 
-__all__ = ["open_log", "LogReader", "LogInfo", "TopicInfo", "detect_format"]
+__all__ = ["open_log", "LogReader", "LogInfo", "TopicInfo", "SkipHandler", "SkipLog", "detect_format"]
 
 _CARMEN_SUFFIXES = (".clf", ".log", ".carmen", ".txt")
 

@@ -5,9 +5,13 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
+from registration.errors import LogFormatError
 from registration.frame import Frame
+
+#: Called with the error of each corrupt record a reader skipped (see :meth:`LogReader.frames`).
+SkipHandler = Callable[[LogFormatError], None]
 
 
 @dataclass
@@ -56,8 +60,20 @@ class LogReader(abc.ABC):
         self.topic = topic
 
     @abc.abstractmethod
-    def frames(self) -> Iterator[Frame]:
-        """Yield every scan of the chosen sensor topic as a Frame."""
+    def frames(self, on_skip: SkipHandler | None = None) -> Iterator[Frame]:
+        """Yield every scan of the chosen sensor topic as a Frame.
+
+        Args:
+            on_skip: None (default): the first corrupt record raises :class:`LogFormatError`
+                naming the file and position. Given: each corrupt record (a line, a message, a
+                chunk, a scan file) is passed to ``on_skip`` as that same error and reading goes
+                on after it; a corrupt stretch the format cannot resynchronise after (a truncated
+                compressed stream, a cut container) is reported once and ends the frames.
+        """
+
+    def has_ground_truth(self) -> bool:
+        """Whether the frames carry a ``ground_truth`` pose (a cheap check, not a full pass)."""
+        return False
 
     @abc.abstractmethod
     def info(self) -> LogInfo:
@@ -65,3 +81,20 @@ class LogReader(abc.ABC):
 
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
+
+
+@dataclass
+class SkipLog:
+    """A :data:`SkipHandler` that keeps what was skipped: ``reader.frames(on_skip=log)``."""
+
+    errors: list[LogFormatError] = field(default_factory=list)
+
+    def __call__(self, error: LogFormatError) -> None:
+        self.errors.append(error)
+
+    def __len__(self) -> int:
+        return len(self.errors)
+
+    def lines(self) -> list[str]:
+        """One ``file:pos: what`` line per skipped record."""
+        return [" ".join(str(e).split()) for e in self.errors]

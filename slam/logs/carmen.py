@@ -55,7 +55,7 @@ from registration import geometry as geo
 from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
 
-from .base import LogInfo, LogReader, TopicInfo
+from .base import LogInfo, LogReader, SkipHandler, TopicInfo
 
 __all__ = ["CarmenReader", "parse_laser_line", "LASER_TAGS", "DEFAULT_FLASER_MAX_RANGE"]
 
@@ -444,16 +444,31 @@ def _line_blocks(path: Path, limit_bytes: int | None = None) -> Iterator[tuple[i
 
 
 def _plain_blocks(fh: IO[bytes]) -> Iterator[bytes | BaseException]:
-    """Blocks of *fh* read in this thread; a read error is yielded (not raised) as the last item."""
+    """Blocks of about 1 MiB of *fh* read in this thread; a read error is yielded (not raised) as
+    the last item, after the bytes read before it.
+
+    The block is gathered from ``read1`` calls (one decompressor step each, for bz2/gzip), so a
+    truncated or corrupt compressed stream loses only the step that failed, not the whole block.
+    """
+    read = getattr(fh, "read1", fh.read)
+    parts: list[bytes] = []
+    size = 0
     while True:
         try:
-            block = fh.read(_BLOCK)
+            chunk = read(_BLOCK - size)
         except Exception as exc:  # noqa: BLE001 - handed to the caller, which classifies it
+            if parts:
+                yield b"".join(parts)
             yield exc
             return
-        if not block:
+        if chunk:
+            parts.append(chunk)
+            size += len(chunk)
+        if size >= _BLOCK or (not chunk and parts):
+            yield parts[0] if len(parts) == 1 else b"".join(parts)
+            parts, size = [], 0
+        if not chunk:
             return
-        yield block
 
 
 def _prefetch(fh: IO[bytes], depth: int = 3) -> Iterator[bytes | BaseException]:
@@ -548,6 +563,81 @@ def _check_odom(tokens: list[bytes], linenos: list[int], path: str) -> _LineErro
     return None
 
 
+class _BlockParser:
+    """Frames of a run of consecutive lines, stopping at the first bad line (see ``CarmenReader._stream``)."""
+
+    def __init__(self, path: str, name: str, want: bytes, fast: bool, fl_max: float, override: float | None) -> None:
+        self.path, self.name, self.want, self.fast = path, name, want, fast
+        self.fl_max, self.override = fl_max, override
+        self.cache = _FloatCache()
+
+    def __call__(self, first: int, lines: list[bytes], index: int) -> tuple[list[Frame], _LineError | None, Counter]:
+        """``(frames, error, tag_counts)`` of *lines* (the first is line *first*; frames numbered from
+        *index*): the frames and message-tag counts of the lines before the first bad one, and its error."""
+        path, want, fast = self.path, self.want, self.fast
+        counts: Counter = Counter()
+        lasers: list[_Laser] = []
+        rows: list[list[bytes]] = []
+        linenos: list[int] = []
+        odom_tokens: list[bytes] = []
+        odom_lines: list[int] = []
+        error: _LineError | None = None
+        lineno = first
+        try:
+            for lineno, ln in zip(range(first, first + len(lines)), lines):
+                tokens = ln.split()
+                if not tokens:
+                    continue
+                t0 = tokens[0]
+                if t0 == want:
+                    if fast:
+                        rows.append(tokens)
+                    else:
+                        lasers.append(_parse_numbers(tokens, path, lineno))
+                    linenos.append(lineno)
+                    continue
+                if t0[:1] == b"#":
+                    continue
+                if t0 != b"ODOM" and not _TAG_RE.match(t0):
+                    raise _fail(path, lineno, f"garbage line: expected a CARMEN message tag, got {_short(t0)}")
+                if t0 == b"ODOM":
+                    if len(tokens) != 10:
+                        raise _fail(path, lineno, "ODOM needs 10 fields (x y theta tv rv accel ipc_timestamp "
+                                                  f"host logger_timestamp), got {len(tokens)}")
+                    odom_tokens += tokens[1:8]
+                    odom_lines.append(lineno)
+                counts[t0.decode("ascii")] += 1
+        except LogFormatError as exc:
+            error = _LineError(exc, lineno)  # hand out the good scans before it first
+        loop_error = error
+        if odom_lines:
+            bad_odom = _check_odom(odom_tokens, odom_lines, path)
+            if bad_odom is not None and (error is None or bad_odom.lineno < error.lineno):
+                error = bad_odom
+        if error is not None:  # only the scans before the first bad line
+            keep = sum(1 for ln in linenos if ln < error.lineno)
+            lasers, rows, linenos = lasers[:keep], rows[:keep], linenos[:keep]
+        if fast:
+            frames, laser_error = _flaser_block(rows, linenos, path=path, name=self.name, first_index=index,
+                                                max_range=self.fl_max, cache=self.cache)
+            if laser_error is not None:
+                error = laser_error
+        else:
+            frames = _to_frames(lasers, linenos, first_index=index, name=self.name, flaser_max_range=self.fl_max,
+                                override=self.override)
+        if error is not None and error is not loop_error:  # tags were counted past the bad line: count again
+            counts = Counter(_tags(lines[: error.lineno - first], want))
+        return frames, error, counts
+
+
+def _tags(lines: list[bytes], want: bytes) -> Iterator[str]:
+    """The message tags of good *lines*, as the parser counts them (not the sensor tag, not comments)."""
+    for ln in lines:
+        tok = ln.split(None, 1)
+        if tok and tok[0] != want and tok[0][:1] != b"#":
+            yield tok[0].decode("ascii")
+
+
 class CarmenReader(LogReader):
     """Streaming reader of one laser stream of a CARMEN log.
 
@@ -628,76 +718,52 @@ class CarmenReader(LogReader):
         sat = self._probe()[1]
         return sat if sat is not None else DEFAULT_FLASER_MAX_RANGE
 
-    def _stream(self, tag_counts: Counter, odom_fields: list[bool] | None = None) -> Iterator[Frame]:
-        """Parse the log block by block; count every message tag into *tag_counts*."""
+    def _stream(self, tag_counts: Counter, odom_fields: list[bool] | None = None,
+                on_skip: SkipHandler | None = None) -> Iterator[Frame]:
+        """Parse the log block by block; count every message tag into *tag_counts*.
+
+        With *on_skip*, a bad line is reported and parsing resumes on the next line; a corrupt or
+        truncated compressed stream is reported and ends the frames (what was read is kept).
+        """
         topic = self.sensor_topic
-        want = topic.encode()
         path = str(self.path)
-        name = self.path.name
-        fl_max = self.flaser_max_range()
         # FLASER/RLASER take the block-vectorised path; ROBOTLASER* lines are parsed one by one
         # (a user max range applies to both kinds, see flaser_max_range()).
-        fast = topic in ("FLASER", "RLASER")
-        cache = _FloatCache()
+        parse = _BlockParser(path, self.path.name, topic.encode(), topic in ("FLASER", "RLASER"),
+                             self.flaser_max_range(), self._user_max_range)
         index = 0
         last = 0
         n_topic = 0
-        for first, lines in _line_blocks(self.path):
-            lasers: list[_Laser] = []
-            rows: list[list[bytes]] = []
-            linenos: list[int] = []
-            odom_tokens: list[bytes] = []
-            odom_lines: list[int] = []
-            error: _LineError | None = None
-            try:
-                for lineno, ln in zip(range(first, first + len(lines)), lines):
-                    last = lineno
-                    tokens = ln.split()
-                    if not tokens:
-                        continue
-                    t0 = tokens[0]
-                    if t0 == want:
-                        if fast:
-                            rows.append(tokens)
-                        else:
-                            lasers.append(_parse_numbers(tokens, path, lineno))
-                        linenos.append(lineno)
-                        continue
-                    if t0[:1] == b"#":
-                        continue
-                    if t0 != b"ODOM" and not _TAG_RE.match(t0):
-                        raise _fail(path, lineno, f"garbage line: expected a CARMEN message tag, got {_short(t0)}")
-                    if t0 == b"ODOM":
-                        if len(tokens) != 10:
-                            raise _fail(path, lineno, "ODOM needs 10 fields (x y theta tv rv accel ipc_timestamp "
-                                                      f"host logger_timestamp), got {len(tokens)}")
-                        odom_tokens += tokens[1:8]
-                        odom_lines.append(lineno)
-                    tag_counts[t0.decode("ascii")] += 1
-            except LogFormatError as exc:
-                error = _LineError(exc, last)  # hand out the good scans before it first
-            if odom_lines:
-                bad_odom = _check_odom(odom_tokens, odom_lines, path)
-                if bad_odom is not None and (error is None or bad_odom.lineno < error.lineno):
-                    error = bad_odom
-            if error is not None:  # only the scans before the first bad line
-                keep = sum(1 for ln in linenos if ln < error.lineno)
-                lasers, rows, linenos = lasers[:keep], rows[:keep], linenos[:keep]
-            if fast:
-                frames, laser_error = _flaser_block(rows, linenos, path=path, name=name, first_index=index,
-                                                    max_range=fl_max, cache=cache)
-                if laser_error is not None:
-                    error = laser_error
-            else:
-                frames = _to_frames(lasers, linenos, first_index=index, name=name, flaser_max_range=fl_max,
-                                    override=self._user_max_range)
-            n_topic += len(frames)
-            if odom_fields is not None and frames and not odom_fields[0]:
-                odom_fields[0] = any((f.odom[:2, 3] != 0.0).any() or f.odom[1, 0] != 0.0 for f in frames)
-            index += len(frames)
-            yield from frames
-            if error is not None:
-                raise error.error
+        blocks = _line_blocks(self.path)
+        try:
+            while True:
+                try:
+                    first, lines = next(blocks)
+                except StopIteration:
+                    break
+                except LogFormatError as exc:  # corrupt / truncated compressed stream: nothing after it
+                    if on_skip is None:
+                        raise
+                    on_skip(exc)
+                    break
+                while lines:
+                    frames, error, counts = parse(first, lines, index)
+                    last = first + len(lines) - 1 if error is None else error.lineno
+                    tag_counts.update(counts)
+                    n_topic += len(frames)
+                    if odom_fields is not None and frames and not odom_fields[0]:
+                        odom_fields[0] = any((f.odom[:2, 3] != 0.0).any() or f.odom[1, 0] != 0.0 for f in frames)
+                    index += len(frames)
+                    yield from frames
+                    if error is None:
+                        break
+                    if on_skip is None:
+                        raise error.error
+                    on_skip(error.error)  # resume on the line after the bad one
+                    lines = lines[error.lineno + 1 - first:]
+                    first = error.lineno + 1
+        finally:
+            blocks.close()
         tag_counts[topic] += n_topic
         if n_topic == 0:
             del tag_counts[topic]
@@ -708,10 +774,14 @@ class CarmenReader(LogReader):
             where = f"line {last}" if last else None
             raise LogFormatError(self.path, where, f"no scans: the log has no {topic} messages{others}")
 
-    def frames(self) -> Iterator[Frame]:
-        """Yield every scan of the chosen laser as a Frame, in file order (streaming)."""
+    def frames(self, on_skip: SkipHandler | None = None) -> Iterator[Frame]:
+        """Yield every scan of the chosen laser as a Frame, in file order (streaming).
+
+        With *on_skip* a malformed line is reported and skipped, and a corrupt or truncated
+        compressed stream is reported and ends the frames (see :meth:`LogReader.frames`).
+        """
         counts: Counter = Counter()
-        yield from self._stream(counts)
+        yield from self._stream(counts, on_skip=on_skip)
 
     def info(self) -> LogInfo:
         """Stream the log once, validating every scan line, and summarise it."""

@@ -27,7 +27,7 @@ from registration import geometry as geo
 from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
 
-from .base import LogInfo, LogReader, TopicInfo
+from .base import LogInfo, LogReader, SkipHandler, TopicInfo
 
 __all__ = ["KittiReader", "read_velodyne_bin", "read_calib", "read_kitti_poses", "KITTI_RATE_HZ"]
 
@@ -235,14 +235,26 @@ class KittiReader(LogReader):
         return gt[num].copy()
 
     # -- LogReader ----------------------------------------------------------------------
-    def frames(self) -> Iterator[Frame]:
-        """Yield each scan: (N, 3) float64 points in the Velodyne frame, GT ``world_T_velo`` if known."""
+    def frames(self, on_skip: SkipHandler | None = None) -> Iterator[Frame]:
+        """Yield each scan: (N, 3) float64 points in the Velodyne frame, GT ``world_T_velo`` if known.
+
+        With *on_skip*, a scan file that cannot be used (truncated, non-finite points, no stamp
+        or pose line for it) is reported and skipped; ``Frame.index`` stays the file's position.
+        """
         for k, b in enumerate(self.bins):
-            pts = read_velodyne_bin(b)
-            yield Frame(
-                stamp=self.stamp(k), points=pts, index=k, ground_truth=self._gt_of(k),
-                source=f"{b.name}",
-            )
+            try:
+                frame = Frame(stamp=self.stamp(k), points=read_velodyne_bin(b), index=k, ground_truth=self._gt_of(k),
+                              source=f"{b.name}")
+            except LogFormatError as exc:
+                if on_skip is None:
+                    raise
+                on_skip(exc)
+                continue
+            yield frame
+
+    def has_ground_truth(self) -> bool:
+        """True when ``poses/NN.txt`` and ``calib.txt`` are there (the frames then carry ground truth)."""
+        return self.ground_truth_velo() is not None
 
     def info(self) -> LogInfo:
         """Summarise from the file sizes, checking each (a size not a multiple of 16 is an error)."""

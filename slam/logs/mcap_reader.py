@@ -11,17 +11,25 @@ Messages are decoded with types built from the schemas carried in the file
 (``ros2msg`` / ``ros2idl`` / ``ros1msg``), registered with rosbags' ``get_types_from_msg`` /
 ``get_types_from_idl``, so files written by any ROS 2 tool decode, not only our own. Chunk
 CRCs are checked, so flipped bytes surface as an error naming the message, not as garbage.
+
+Skipping (``frames(on_skip=...)``): a message that does not decode is left out; with a summary
+section, a corrupt chunk is left out and the next chunks are read (chunk by chunk from the chunk
+index, merged in log-time order as the ``SeekingReader`` does); without one, the linear read
+cannot find the next record after a corrupt or cut one, so the messages end there.
 """
 
 from __future__ import annotations
 
+import heapq
+import io
 import os
+import struct
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from registration.errors import LogFormatError
 
-from .base import TopicInfo
+from .base import SkipHandler, TopicInfo
 from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages
 from .ros_msgs import RawMessage, RosLogReader, cached_typestore, normalize_msgtype
 
@@ -107,17 +115,72 @@ class McapReader(RosLogReader):
             )
         return self._index_ok
 
-    def _library_records(self, fh, topics: set[str] | None) -> Iterator[tuple[Any, Any, Any]]:
+    def _library_records(self, fh, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[tuple[Any, Any, Any]]:
         """(schema, channel, message) from the ``mcap`` library: in log-time order when the file is
-        chunk-indexed, else in file order."""
+        chunk-indexed, else in file order. With *on_skip* and a chunk index, corrupt chunks are
+        reported and skipped."""
         from mcap.reader import NonSeekingReader, SeekingReader
 
         summary = self._summary()
         fh.seek(0)
         if summary is not None and summary.chunk_indexes:
+            if on_skip is not None:
+                return self._chunked_records(fh, summary, topics, on_skip)
             return SeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=True)
         # File order: log_time_order=True would make the mcap library load the whole file to sort it.
         return NonSeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=False)
+
+    def _chunk_messages(self, fh, index: Any, summary: Any, topics: set[str] | None) -> list[tuple[Any, Any, Any]]:
+        """(schema, channel, message) of one chunk (file order); raises whatever a corrupt chunk raises."""
+        from mcap.data_stream import ReadDataStream
+        from mcap.opcode import Opcode
+        from mcap.records import Chunk, Message
+        from mcap.stream_reader import breakup_chunk
+
+        fh.seek(index.chunk_start_offset)
+        raw = fh.read(index.chunk_length)  # opcode (1 byte), record length (uint64), Chunk record
+        if len(raw) != index.chunk_length or raw[0] != Opcode.CHUNK:
+            raise ValueError(f"no chunk record of {index.chunk_length} bytes at byte offset {index.chunk_start_offset}")
+        (length,) = struct.unpack_from("<Q", raw, 1)
+        if length != index.chunk_length - 9:
+            raise ValueError(f"chunk record length {length}, the chunk index says {index.chunk_length - 9}")
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(raw[9:])))
+        out = []
+        for rec in breakup_chunk(chunk, validate_crc=self.validate_crcs):
+            if isinstance(rec, Message):
+                channel = summary.channels[rec.channel_id]
+                if topics is None or channel.topic in topics:
+                    out.append((summary.schemas.get(channel.schema_id), channel, rec))
+        return out
+
+    def _chunked_records(self, fh, summary: Any, topics: set[str] | None, on_skip: SkipHandler) -> Iterator[tuple[Any, Any, Any]]:
+        """Messages of *topics* in log-time order from the chunk index, skipping corrupt chunks.
+
+        The order is the ``SeekingReader``'s: by log time, then by chunk offset, then by position
+        in the chunk; a chunk is opened when the merge reaches its first log time.
+        """
+        heap: list[tuple[int, int, int, Any]] = []  # (log time, chunk offset, index in chunk or -1, item)
+        for ci in summary.chunk_indexes:
+            ids = ci.message_index_offsets
+            if topics is not None and ids and not any(c in summary.channels and summary.channels[c].topic in topics for c in ids):
+                continue
+            heap.append((ci.message_start_time, ci.chunk_start_offset, -1, ci))
+        heapq.heapify(heap)
+        while heap:
+            t, offset, i, item = heapq.heappop(heap)
+            if i >= 0:
+                yield item
+                continue
+            try:
+                messages = self._chunk_messages(fh, item, summary, topics)
+            except Exception as exc:  # mcap raises CRC, decompression, struct and key errors
+                why = f"{type(exc).__name__}: {exc}".rstrip(": ")
+                on_skip(LogFormatError(self.path, f"byte offset {offset}",
+                                       f"corrupt MCAP chunk (log time {item.message_start_time / 1e9:.9f}–"
+                                       f"{item.message_end_time / 1e9:.9f} s) skipped: {why}"))
+                continue
+            for k, m in enumerate(messages):
+                heapq.heappush(heap, (m[2].log_time, offset, k, m))
 
     def _open(self):
         try:
@@ -136,8 +199,9 @@ class McapReader(RosLogReader):
         fh.seek(0)
         return fh
 
-    def _load_meta(self) -> None:
-        """Topics, types and counts: from the summary when present, else from one linear pass."""
+    def _load_meta(self, tolerant: bool = False) -> None:
+        """Topics, types and counts: from the summary when present, else from one linear pass
+        (*tolerant*: up to the first corrupt or cut record, which the message pass then reports)."""
         if self._topics is not None:
             return
         summary = self._summary()
@@ -149,11 +213,15 @@ class McapReader(RosLogReader):
             counts = dict(summary.statistics.channel_message_counts)
         else:
             with self._open() as fh:
-                for schema, channel, _msg in self._guard(self._library_records(fh, None), fh.tell, {}):
-                    channels[channel.id] = channel
-                    if schema is not None:
-                        schemas[schema.id] = schema
-                    counts[channel.id] = counts.get(channel.id, 0) + 1
+                try:
+                    for schema, channel, _msg in self._guard(self._library_records(fh, None), fh.tell, {}):
+                        channels[channel.id] = channel
+                        if schema is not None:
+                            schemas[schema.id] = schema
+                        counts[channel.id] = counts.get(channel.id, 0) + 1
+                except LogFormatError:
+                    if not tolerant or not channels:
+                        raise
         per_topic: dict[str, list] = {}
         defs: dict[str, tuple[str, str, str]] = {}
         for cid, ch in channels.items():
@@ -175,8 +243,16 @@ class McapReader(RosLogReader):
             raise LogFormatError(self.path, "schema records", f"bad message definition: {exc}") from None
         self._topics = [TopicInfo(name, mt, n) for name, (mt, n) in sorted(per_topic.items())]
 
-    def _guard(self, it: Iterator, tell: Callable[[], int], counts: dict[str, int] | None = None, topic_of=None) -> Iterator:
-        """Re-raise container errors as LogFormatError with the byte offset and last good message.
+    def _guard(
+        self,
+        it: Iterator,
+        tell: Callable[[], int],
+        counts: dict[str, int] | None = None,
+        topic_of: Callable[[Any], str] | None = None,
+        on_skip: SkipHandler | None = None,
+    ) -> Iterator:
+        """Re-raise container errors as LogFormatError with the byte offset and last good message
+        (with *on_skip*: report it there and end the messages, the stream cannot be resumed).
 
         *tell* gives the file position when the error carries none; *topic_of(item)* the topic of
         an item (default ``item[1].topic``), counted into *counts*."""
@@ -194,7 +270,11 @@ class McapReader(RosLogReader):
                     except (OSError, ValueError):
                         pos = -1
                 why = str(exc) if isinstance(exc, ChunkError) else f"{type(exc).__name__}: {exc}".rstrip(": ")
-                raise LogFormatError(self.path, f"byte offset {pos} ({last})", f"corrupt or truncated MCAP: {why}") from None
+                error = LogFormatError(self.path, f"byte offset {pos} ({last})", f"corrupt or truncated MCAP: {why}")
+                if on_skip is None:
+                    raise error from None
+                on_skip(error)
+                return
             if counts is not None:
                 topic = item[1].topic if topic_of is None else topic_of(item)
                 counts[topic] = counts.get(topic, -1) + 1
@@ -206,14 +286,14 @@ class McapReader(RosLogReader):
         assert self._topics is not None
         return list(self._topics)
 
-    def _raw_messages(self, topics: set[str] | None) -> Iterator[RawMessage]:
+    def _raw_messages(self, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[RawMessage]:
         self._load_meta()
         counts: dict[str, int] = {}
-        if self._use_index():
+        if on_skip is None and self._use_index():
             yield from self._indexed_raw_messages(topics, counts)
             return
         with self._open() as fh:
-            for schema, channel, message in self._guard(self._library_records(fh, topics), fh.tell, counts):
+            for schema, channel, message in self._guard(self._library_records(fh, topics, on_skip), fh.tell, counts, on_skip=on_skip):
                 topic = channel.topic
                 mt = normalize_msgtype(schema.name) if schema is not None else "(no schema)"
                 k = counts[topic]

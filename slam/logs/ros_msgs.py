@@ -36,7 +36,7 @@ from registration import geometry as geo
 from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
 
-from .base import LogInfo, LogReader, TopicInfo
+from .base import LogInfo, LogReader, SkipHandler, TopicInfo
 
 Array = NDArray[np.float64]
 
@@ -646,9 +646,10 @@ class RosLogReader(LogReader):
         """Every topic of the log with its (normalised) message type and message count."""
 
     @abc.abstractmethod
-    def _raw_messages(self, topics: set[str] | None) -> Iterator[RawMessage]:
+    def _raw_messages(self, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[RawMessage]:
         """Messages of *topics* (all when None) in time order, undecoded; raises LogFormatError
-        on a corrupt or truncated container."""
+        on a corrupt or truncated container, or, with *on_skip*, reports it and goes on after it
+        where the container allows (else ends the messages)."""
 
     @abc.abstractmethod
     def _decode(self, raw: RawMessage) -> Any:
@@ -657,6 +658,9 @@ class RosLogReader(LogReader):
     def _session(self) -> contextlib.AbstractContextManager:
         """Resources kept open across the several passes of one frames()/info() call."""
         return contextlib.nullcontext()
+
+    def _load_meta(self, tolerant: bool = False) -> None:
+        """Read topics and message definitions (*tolerant*: as far as a damaged file allows)."""
 
     # -- topic roles ------------------------------------------------------------------------
 
@@ -721,25 +725,39 @@ class RosLogReader(LogReader):
         except ValueError as exc:
             raise LogFormatError(self.path, raw.where, f"{raw.topic}: {exc}") from None
 
-    def _first(self, topic: str) -> Any | None:
-        """The first decoded message of *topic* (None when the topic is empty)."""
-        it = self._raw_messages({topic})
+    def _first(self, topic: str, skip: SkipHandler | None = None) -> Any | None:
+        """The first decoded message of *topic* (None when the topic is empty); with *skip*, the
+        first one that decodes (the bad ones go to *skip*)."""
+        it = self._raw_messages({topic}, skip)
         try:
-            raw = next(it, None)
-            return None if raw is None else self._decode(raw)
+            for raw in it:
+                try:
+                    return self._decode(raw)
+                except LogFormatError as exc:
+                    if skip is None:
+                        raise
+                    skip(exc)
+            return None
         finally:
             it.close()  # type: ignore[attr-defined]
 
-    def _tf_odometry_child(self, tf_topics: Sequence[str], probe: int = 200) -> str | None:
+    def _tf_odometry_child(self, tf_topics: Sequence[str], probe: int = 200, skip: SkipHandler | None = None) -> str | None:
         """The child of a dynamic ``odom → base`` transform among the first *probe* /tf messages
-        (REP-105: the odometry frame is ``odom``), or None."""
+        (REP-105: the odometry frame is ``odom``), or None. With *skip*, undecodable messages go to it."""
         for name in tf_topics:
-            it = self._raw_messages({name})
+            it = self._raw_messages({name}, skip)
             try:
                 for k, raw in enumerate(it):
                     if k >= probe:
                         break
-                    for ts in self._decode(raw).transforms:
+                    try:
+                        msg = self._decode(raw)
+                    except LogFormatError as exc:
+                        if skip is None:
+                            raise
+                        skip(exc)
+                        continue
+                    for ts in msg.transforms:
                         if strip_frame(ts.header.frame_id) == "odom":
                             return strip_frame(ts.child_frame_id)
             finally:
@@ -767,27 +785,54 @@ class RosLogReader(LogReader):
                     return T
         return np.eye(4)
 
-    def frames(self) -> Iterator[Frame]:
+    def has_ground_truth(self) -> bool:
+        """Whether a ground-truth topic (named or given) is in the log."""
+        return self.choose_topics().ground_truth is not None
+
+    def frames(self, on_skip: SkipHandler | None = None) -> Iterator[Frame]:
         """Every scan of the sensor topic as a Frame (in log order), with ``odom`` /
-        ``ground_truth`` interpolated to the scan stamp and ``base_T_sensor`` from TF."""
+        ``ground_truth`` interpolated to the scan stamp and ``base_T_sensor`` from TF.
+
+        With *on_skip*, a message that does not decode (or a scan that is malformed) is reported
+        and left out; a corrupt container stretch is reported and skipped where the format
+        allows (see the readers). The preparatory passes (static TF, first messages) skip bad
+        messages silently: the main pass, which reads them again, reports each once.
+        """
+        quiet: SkipHandler | None = None if on_skip is None else (lambda exc: None)
+
+        def guarded(fn: Any, *args: Any, **kwargs: Any) -> Any:
+            """``fn(*args, **kwargs)``; with *on_skip*, a LogFormatError is reported and None returned."""
+            try:
+                return fn(*args, **kwargs)
+            except LogFormatError as exc:
+                if on_skip is None:
+                    raise
+                on_skip(exc)
+                return None
+
         with self._session():
+            self._load_meta(tolerant=on_skip is not None)
             choice = self.choose_topics()
             laser = choice.sensor.msgtype == LASER_SCAN
             batch_size = 64 if laser else 1
             max_pending = self.max_pending if laser else 16
             tf = TfBuffer()
             for name in choice.tf_static:
-                for raw in self._raw_messages({name}):
-                    self._add_tf(tf, raw, static=True)
+                for raw in self._raw_messages({name}, quiet):
+                    try:
+                        self._add_tf(tf, raw, static=True)
+                    except LogFormatError:
+                        if quiet is None:
+                            raise
             odom = PoseTrack(self.max_gap) if choice.odom else None
             gt = PoseTrack(self.max_gap) if choice.ground_truth else None
             odom_child: str | None = None
             if choice.odom is not None:
-                first_odom = self._first(choice.odom.name)
+                first_odom = self._first(choice.odom.name, quiet)
                 odom_child = strip_frame(first_odom.child_frame_id) if first_odom is not None else None
             # Dynamic /tf is only needed when the static tree does not already mount the sensor on the base.
             need_tf = bool(choice.tf)
-            first_scan = self._first(choice.sensor.name)
+            first_scan = self._first(choice.sensor.name, quiet)
             if need_tf and first_scan is not None:
                 sensor0 = strip_frame(first_scan.header.frame_id)
                 need_tf = not any(
@@ -797,7 +842,7 @@ class RosLogReader(LogReader):
             # No Odometry topic: take odometry from the TF edge odom → base when the log has one.
             tf_odom: str | None = None
             if choice.odom is None and self.odom_topic is None and choice.tf:
-                tf_odom = self._tf_odometry_child(choice.tf)
+                tf_odom = self._tf_odometry_child(choice.tf, skip=quiet)
                 if tf_odom is not None:
                     odom_child, need_tf = tf_odom, True
             wanted = {choice.sensor.name, *choice.tf_static}
@@ -822,7 +867,9 @@ class RosLogReader(LogReader):
                         extra["odom"] = o
                     if gt is not None:
                         extra["ground_truth"] = g
-                    yield self._to_frame(raw, msg, k, **extra)
+                    frame = guarded(self._to_frame, raw, msg, k, **extra)
+                    if frame is not None:
+                        yield frame
                 batch.clear()
 
             def ready(t: float) -> bool:
@@ -833,7 +880,10 @@ class RosLogReader(LogReader):
                 )
 
             scan_index = 0
-            for raw in self._raw_messages(wanted):
+
+            def take(raw: RawMessage) -> None:
+                """Decode one message and file it (a scan into *pending*, a pose into its track)."""
+                nonlocal scan_index
                 topic = raw.topic
                 if topic == choice.sensor.name:
                     msg = self._decode(raw)
@@ -851,6 +901,9 @@ class RosLogReader(LogReader):
                     self._add_tf(tf, raw, static=True)
                 elif topic in choice.tf:
                     self._add_tf(tf, raw, static=False)
+
+            for raw in self._raw_messages(wanted, on_skip):
+                guarded(take, raw)
                 while pending and (ready(pending[0][3]) or len(pending) > max_pending):
                     batch.append(pending.popleft())
                 if len(batch) >= batch_size:

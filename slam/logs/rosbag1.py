@@ -14,12 +14,13 @@ decompressed chunk at a time; the frame assembly itself is streaming (see
 from __future__ import annotations
 
 import contextlib
+import heapq
 from pathlib import Path
 from typing import Any, Iterator
 
 from registration.errors import LogFormatError
 
-from .base import TopicInfo
+from .base import SkipHandler, TopicInfo
 from .ros_msgs import RawMessage, RosLogReader, build_typestore, normalize_msgtype
 
 __all__ = ["Ros1BagReader"]
@@ -59,7 +60,9 @@ class Ros1BagReader(RosLogReader):
             raise LogFormatError(self.path, None, f"not a readable ROS 1 bag: {exc}") from None
         return reader
 
-    def _load_meta(self) -> None:
+    def _load_meta(self, tolerant: bool = False) -> None:
+        """Topics and message definitions from the bag's connection records (the index must be
+        readable, *tolerant* or not: rosbags reads it before any message)."""
         if self._topics is not None:
             return
         reader = self._open()
@@ -85,7 +88,14 @@ class Ros1BagReader(RosLogReader):
         assert self._topics is not None
         return list(self._topics)
 
-    def _raw_messages(self, topics: set[str] | None) -> Iterator[RawMessage]:
+    def _raw_messages(self, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[RawMessage]:
+        """Messages in time order; with *on_skip*, a message rosbags cannot read (corrupt chunk or
+        record) is reported and reading resumes after its stamp.
+
+        rosbags' message generator dies with its first error, so resuming restarts it at
+        ``stamp + 1 ns`` of the failing index entry (found in ``Reader.indexes``, merged in the
+        same order as rosbags merges them); entries sharing that nanosecond are reported too.
+        """
         from rosbags.rosbag1 import ReaderError
 
         self._load_meta()
@@ -97,18 +107,37 @@ class Ros1BagReader(RosLogReader):
             conns = [c for c in reader.connections if topics is None or c.topic in topics]
             if not conns:
                 return
-            it = reader.messages(connections=conns)
+            index = None  # (stamp ns, topic) of every message in rosbags' order, built on the first error
+            done = 0  # messages handed out or skipped so far, in that order
+            start: int | None = None
             while True:
+                it = reader.messages(connections=conns, start=start)
                 try:
-                    conn, t_ns, data = next(it)
-                except StopIteration:
+                    for conn, t_ns, data in it:
+                        k = counts.get(conn.topic, 0)
+                        counts[conn.topic] = k + 1
+                        last = f"{conn.topic} message {k}"
+                        done += 1
+                        yield RawMessage(k, conn.topic, normalize_msgtype(conn.msgtype), int(t_ns), data, last)
                     return
                 except (ReaderError, OSError, ValueError, KeyError, IndexError, EOFError, AssertionError) as exc:
-                    raise LogFormatError(self.path, f"after {last}", f"corrupt or truncated bag: {exc}") from None
-                k = counts.get(conn.topic, 0)
-                counts[conn.topic] = k + 1
-                last = f"{conn.topic} message {k}"
-                yield RawMessage(k, conn.topic, normalize_msgtype(conn.msgtype), int(t_ns), data, last)
+                    error = LogFormatError(self.path, f"after {last}", f"corrupt or truncated bag: {exc}")
+                    if on_skip is None:
+                        raise error from None
+                if index is None:
+                    index = [(e.time, c.topic) for e, c in heapq.merge(
+                        *[[(e, c) for e in reader.indexes[c.id]] for c in conns], key=lambda ec: ec[0].time)]
+                if done >= len(index):
+                    on_skip(error)
+                    return
+                t_bad = index[done][0]
+                while done < len(index) and index[done][0] == t_bad:
+                    topic = index[done][1]
+                    k = counts.get(topic, 0)
+                    counts[topic] = k + 1
+                    on_skip(LogFormatError(self.path, f"{topic} message {k}", f"unreadable in the bag, skipped: {error.what}"))
+                    done += 1
+                start = t_bad + 1
         finally:
             if own:
                 reader.close()

@@ -97,6 +97,12 @@ class FrontEnd:
         self._dof: int | None = None
         self.wheel_edges: list[WheelEdge] = []
 
+    def latest_wheel_edge(self, kf: Keyframe) -> WheelEdge | None:
+        """The wheel-odometry edge ending at keyframe *kf*, if the log has wheel odometry."""
+        if self.wheel_edges and self.wheel_edges[-1].j == kf.id:
+            return self.wheel_edges[-1]
+        return None
+
     def _diagonal(self, var_translation: float, var_rotation: float) -> Array:
         """Diagonal covariance in the (translation, rotation) tangent order of this log's dimension."""
         n_t = 2 if self._dof == 3 else 3

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import platform
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -72,8 +73,14 @@ def _write_ply(path: Path, result: SlamResult, voxel: float) -> None:
         raise OSError(f"open3d could not write {path}")
 
 
-def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: SlamConfig, summary: dict) -> Path:  # type: ignore[no-untyped-def]
-    """Write every output of a run into *out_dir* (atomically); returns the folder."""
+def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: SlamConfig, summary: dict,  # type: ignore[no-untyped-def]
+                  before_commit: Callable[[Path], None] | None = None) -> Path:
+    """Write every output of a run into *out_dir* (atomically); returns the folder.
+
+    *before_commit*, when given, is called with the temporary folder once every file is in it
+    and may add or rewrite files there (a final ``summary.json``, an evaluation report): they
+    are moved into *out_dir* together with the rest, or not at all.
+    """
     from mapping.occupancy_map import export_map
     from slam.graph.g2o import write_g2o
     from slam.trajectory_io import Trajectory, write_tum
@@ -97,4 +104,6 @@ def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: Slam
         with open(tmp / "summary.json", "w") as fh:
             json.dump(summary, fh, indent=2, default=float)
         (tmp / "config.yaml").write_text(config.to_yaml())
+        if before_commit is not None:
+            before_commit(tmp)
     return out

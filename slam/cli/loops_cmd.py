@@ -1,0 +1,82 @@
+"""``slam loops LOG [--sweep NAME=start:stop:count ...]``: loop-closure precision/recall over a parameter grid.
+
+The front end runs once; loop detection, verification and the pose graph run once per setting
+(:mod:`evaluation.loop_sweep`). Writes ``loops.csv``, ``loops.json`` and ``pr.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+_SUFFIXES = (".bz2", ".gz", ".clf", ".log", ".mcap", ".bag")
+
+
+def relations_beside(log: Path) -> Path | None:
+    """``<stem>.relations`` next to *log*, the stem without its log/compression suffixes, if it exists."""
+    name = log.name
+    cands = [log.with_name(name + ".relations")]
+    while True:
+        cut = next((s for s in _SUFFIXES if name.endswith(s) and len(name) > len(s)), None)
+        if cut is None:
+            break
+        name = name[: -len(cut)]
+        cands.append(log.with_name(name + ".relations"))
+    return next((c for c in reversed(cands) if c.is_file()), None)
+
+
+def _cell(v: object) -> str:
+    if v is None:
+        return "nan"
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def loops(
+    log: Path = typer.Argument(..., help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence."),
+    sweep: list[str] = typer.Option([], "--sweep", help="NAME=start:stop:count over a numeric loops setting (e.g. "
+                                    "min_fitness=0.5:0.8:4); repeat for a grid. Default: the configured setting only."),
+    out: Path = typer.Option(Path("out/loops"), "--out", help="Output folder: loops.csv, loops.json, pr.png (atomic)."),
+    config: Path | None = typer.Option(None, "--config",
+                                       help="YAML configuration (its loops section is the grid's base)."),
+    relations: Path | None = typer.Option(None, "--relations", help="Kümmerle relations for the relation error "
+                                          "(default: <stem>.relations beside the log, if present)."),
+    max_scans: int | None = typer.Option(None, "--max-scans", help="Stop after this many scans."),
+    topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),
+    quiet: bool = typer.Option(False, "--quiet", help="Only the final table."),
+) -> None:
+    """Loop closure on LOG under each setting of a grid: precision/recall against ground truth (simulated
+    logs) or Cartographer's 20 cm / 1° consistency after optimisation (real logs)."""
+    from evaluation.loop_sweep import parse_sweep, run_loop_sweep, sweep_grid, write_sweep
+    from slam.cli.run_cmd import _config
+    from slam.logs import open_log
+
+    # Everything the user typed is checked before any work (and before --out exists).
+    sweeps = [parse_sweep(s) for s in sweep]
+    cfg = _config(config, {"max_scans": max_scans, "mapping.enabled": False})
+    sweep_grid(cfg.loops, sweeps)
+    rel_path = relations if relations is not None else relations_beside(log)
+    rel = None
+    if rel_path is not None:
+        from evaluation.relations import read_relations
+
+        rel = read_relations(rel_path)
+    reader = open_log(log, topic)
+
+    def progress(msg: str) -> None:
+        if not quiet:
+            typer.echo(msg, err=True)
+
+    res = run_loop_sweep(reader.frames(), cfg, sweeps, relations=rel, progress=progress)
+    extra = {"log": str(log), "relations": str(rel_path) if rel_path is not None else None}
+    write_sweep(out, res, extra)
+    typer.echo(f"scans: {res.meta['scans']}  keyframes: {res.meta['keyframes']}  "
+               f"front_end_s: {res.meta['front_end_time_s']:.1f}  scoring: {res.meta['scoring']['kind']}")
+    typer.echo("\t".join(res.columns))
+    for row in res.rows:
+        typer.echo("\t".join(_cell(row[c]) for c in res.columns))
+    typer.echo(f"results: {out.resolve()} (loops.csv, loops.json, pr.png)")
+
+
+def register(app: typer.Typer, eval_app: typer.Typer) -> None:
+    app.command("loops")(loops)

@@ -1,0 +1,73 @@
+"""The online pose graph: each new keyframe's odometry (and wheel) edge, its loop closures found
+against the current estimate, then an incremental solve.
+
+The one place that fixes this order, so ``run_slam`` and the loop-closure replay of ``slam loops``
+(:mod:`slam.pipeline.loop_replay`) cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+
+from .backend import PipelineBackend
+from .config import BackendConfig, LoopConfig
+from .frontend import Keyframe, OdometryEdge, WheelEdge
+from .loop_closure import LoopCloser, LoopClosure
+
+Array = NDArray[np.float64]
+
+
+class OnlineGraph:
+    """Keyframes in, optimised keyframe poses out (``backend.poses`` online, :meth:`finish` at the end)."""
+
+    def __init__(self, loops: LoopConfig, backend: BackendConfig, planar: bool) -> None:
+        self.closer = LoopCloser(loops, planar)
+        self.backend = PipelineBackend(backend, loops, planar)
+        self.loops: list[LoopClosure] = []
+        dof = 3 if planar else 6
+        # Covariance accumulated along the odometry since the last accepted closure: it widens the search.
+        self._cov_since_closure = np.zeros((dof, dof))
+        self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
+
+    def add(self, keyframes: list[Keyframe], edge: OdometryEdge | None, wheel: WheelEdge | None) -> list[LoopClosure]:
+        """Add ``keyframes[-1]`` (all keyframes known so far are passed: the detector never sees the future)
+        with its odometry edge (None for the first keyframe) and wheel edge; returns its accepted closures."""
+        kf = keyframes[-1]
+        be = self.backend
+        t0 = time.perf_counter()
+        if edge is None:
+            be.add_keyframe(kf.id, kf.odom_pose)
+        else:
+            be.add_keyframe(kf.id, be.poses[edge.i] @ edge.measurement)
+            be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance)
+            if wheel is not None:
+                be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
+            self._cov_since_closure = G.compound_covariance(self._cov_since_closure, edge.measurement, edge.covariance)
+        t1 = time.perf_counter()
+        new = self.closer.detect(keyframes, be.poses, kf.id, self._cov_since_closure)
+        t2 = time.perf_counter()
+        for lc in new:
+            be.add_loop(lc)
+        self.loops.extend(new)
+        if new:
+            self._cov_since_closure = np.zeros_like(self._cov_since_closure)
+        be.update(loop_added=bool(new))
+        self.times["loop_closure_s"] += t2 - t1
+        self.times["backend_s"] += (t1 - t0) + (time.perf_counter() - t2)
+        return new
+
+    def finish(self) -> Array:
+        """Final batch solve (with pruning of violated closures); ``(K, 4, 4)`` keyframe poses."""
+        return self.backend.finish()
+
+    @property
+    def stats(self) -> dict:
+        """Loop detection counters plus the closures pruned by the final solve."""
+        s = vars(self.closer.stats).copy()
+        s["pruned"] = self.backend.pruned_loops
+        return s
