@@ -208,14 +208,19 @@ def indexed_messages(
     *,
     validate_crcs: bool = True,
     prefetch: int = 0,
+    on_error: Callable[[ChunkError, Any], None] | None = None,
 ) -> Iterator[tuple[int, int, memoryview]]:
     """``(channel_id, log_time_ns, payload)`` of every message of *channel_ids* (all when None), in
     the library's log-time order (see the module docstring), read through the chunk indexes of
     *summary* (an ``mcap.summary.Summary`` with ``chunk_indexes``).
 
     Payloads are ``memoryview`` slices of the decompressed chunk (or of the file map for an
-    uncompressed chunk): valid as long as they are referenced, never copied. Raises
-    :class:`ChunkError` naming the byte offset of a chunk that cannot be read.
+    uncompressed chunk): valid as long as they are referenced, never copied.
+
+    A chunk that cannot be read (header, decompression, CRC or record layout) raises
+    :class:`ChunkError` naming its byte offset when its turn comes, after every message that sorts
+    before it — or, with *on_error*, is passed to ``on_error(error, chunk_index)`` and left out:
+    the other chunks are read and merged exactly as without it.
     """
     wanted = None if channel_ids is None else set(channel_ids)
     known = set(summary.channels)
@@ -231,15 +236,19 @@ def indexed_messages(
         mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)  # keeps its own descriptor
     view = memoryview(mm)
 
-    def load(ci: Any) -> tuple[Any, memoryview, int]:
+    def load(ci: Any) -> tuple[Any, memoryview | ChunkError, int]:
         """First pass over a chunk's bytes, on a worker thread when prefetching (no GIL needed):
         decompression — or, for an uncompressed chunk, the CRC, which also faults its pages in.
         The CRC of a decompressed chunk is left to the consumer, who checks it while the worker
-        decompresses the next chunk: the two threads then carry similar loads."""
-        records, crc = load_chunk(view, ci)
-        if validate_crcs and not ci.compression:
-            check_crc(records, crc, int(ci.chunk_start_offset))
-            crc = 0
+        decompresses the next chunk: the two threads then carry similar loads. A ChunkError is
+        returned, not raised, so that the read-ahead goes on past a bad chunk."""
+        try:
+            records, crc = load_chunk(view, ci)
+            if validate_crcs and not ci.compression:
+                check_crc(records, crc, int(ci.chunk_start_offset))
+                crc = 0
+        except ChunkError as exc:
+            return ci, exc, 0
         return ci, records, crc
 
     heap: list[tuple[int, int, int, int, memoryview]] = []
@@ -254,9 +263,17 @@ def indexed_messages(
             ):
                 ci, records, crc = next(loaded)
                 nxt += 1
-                if validate_crcs:
-                    check_crc(records, crc, int(ci.chunk_start_offset))
-                msgs = chunk_messages(records, int(ci.chunk_start_offset), known, wanted)
+                try:
+                    if isinstance(records, ChunkError):
+                        raise records
+                    if validate_crcs:
+                        check_crc(records, crc, int(ci.chunk_start_offset))
+                    msgs = chunk_messages(records, int(ci.chunk_start_offset), known, wanted)
+                except ChunkError as exc:
+                    if on_error is None:
+                        raise
+                    on_error(exc, ci)
+                    continue
                 if not heap and all(msgs[i][:3] <= msgs[i + 1][:3] for i in range(len(msgs) - 1)):
                     heap = msgs  # a sorted list is a heap: the common, time-ordered chunk costs no pushes
                 else:
