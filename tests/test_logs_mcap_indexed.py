@@ -388,3 +388,27 @@ def test_damage_inside_a_chunk_with_on_skip(compression, which, where, size, fil
     else:
         assert len(log) == 1 and log.errors[0].where == f"byte offset {start}", log.lines()
         assert got == without(ref, lost)
+
+
+def test_chunk_header_disagreeing_with_its_index(tmp_path):
+    """An uncompressed chunk whose header sizes and CRC are zeroed reads as a valid empty chunk ("no
+    CRC", no records) to the mcap library; the indexed path compares the header with the chunk index
+    (compression, compressed and uncompressed size): an error naming the chunk's byte offset, or with
+    on_skip one skip of that chunk and every other message intact."""
+    from slam.logs import SkipLog
+
+    p = write_mixed_log(tmp_path / "m.mcap", "none", n=30, chunk_size=2048)
+    clean = p.read_bytes()
+    start, _end, lost = chunk_contents(clean)[5]
+    assert lost
+    data = bytearray(clean)
+    data[start + 25 : start + 49] = bytes(24)  # uncompressed_size, CRC, compression length, records length
+    q = tmp_path / "z.mcap"
+    q.write_bytes(bytes(data))
+    ref = messages(McapReader(p, indexed=False))
+    assert messages(McapReader(q, indexed=False)) == without(ref, lost)  # the library sees an empty chunk
+    with pytest.raises(LogFormatError, match=f"byte offset {start} .*differs from its index"):
+        messages(McapReader(q))
+    log = SkipLog()
+    assert messages(McapReader(q), log) == without(ref, lost)
+    assert len(log) == 1 and log.errors[0].where == f"byte offset {start}"

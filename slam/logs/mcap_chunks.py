@@ -81,10 +81,13 @@ def load_chunk(view: memoryview, index: Any) -> tuple[memoryview, int]:
 
     Args:
         view: the whole file (a ``memoryview`` of its ``mmap``).
-        index: ``mcap.records.ChunkIndex`` (``chunk_start_offset``, ``chunk_length``).
+        index: ``mcap.records.ChunkIndex`` (``chunk_start_offset``, ``chunk_length``,
+            ``compression``, ``compressed_size``, ``uncompressed_size``).
 
     The records are a view into *view* for an uncompressed chunk, else into a fresh buffer.
-    Raises :class:`ChunkError` (with the chunk's offset) on any inconsistency.
+    Raises :class:`ChunkError` (with the chunk's offset) on any inconsistency, including a chunk
+    header whose compression or sizes differ from its index (the spec's ChunkIndex repeats them):
+    damage that zeroes the CRC (0: "no CRC") and the sizes would otherwise pass as an empty chunk.
     """
     start, length = int(index.chunk_start_offset), int(index.chunk_length)
     end = start + length
@@ -104,6 +107,10 @@ def load_chunk(view: memoryview, index: Any) -> tuple[memoryview, int]:
     pos += 8
     if pos + data_len > end:
         raise ChunkError(start, f"chunk data of {data_len} bytes runs past the chunk end")
+    declared = (compression, data_len, usize)
+    indexed = (index.compression, int(index.compressed_size), int(index.uncompressed_size))
+    if declared != indexed:
+        raise ChunkError(start, f"chunk header (compression, compressed size, size) {declared} differs from its index {indexed}")
     data = view[pos : pos + data_len]
     if compression:
         dec = _DECOMPRESS.get(compression)
