@@ -9,9 +9,13 @@
    per cloud) written with ``McapLogWriter.write_pointcloud`` and read back with
    ``open_log(path)``; throughput = PointCloud2 payload bytes / wall time to materialise all
    ``(N, 3)`` float64 point arrays, for the writer's default zstd chunks (the summary figure)
-   and for uncompressed chunks. Target ≥ 500 MB/s. Reference: the ``mcap`` library reading the
-   same raw messages without decoding (the container's own ceiling), and rosbags'
-   ``deserialize_cdr`` + a numpy view (the reference decoder).
+   and for uncompressed chunks. Target ≥ 500 MB/s. ``open_log`` reads chunk-indexed files with
+   the indexed chunk path (``slam/logs/mcap_chunks.py``), decompressing the next chunk on a worker
+   thread; the same path on one thread (``prefetch=0``), in skip mode (``frames(on_skip=...)``,
+   which reads through the same path) and the ``mcap`` library path the reader used before
+   (``indexed=False``) are measured beside it. References: the ``mcap`` library
+   reading the same raw messages without decoding, and rosbags' ``deserialize_cdr`` + a numpy
+   view (the reference decoder).
 
 Usage: ``.venv/bin/python benchmarks/io.py [--intel-repeats 5] [--repeats 3] [--clouds 100] [--points 130000]``.
 Wall times are the best of the repeats (the machine is shared; the best run is the least
@@ -36,7 +40,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from slam.logs import open_log  # noqa: E402
+from slam.logs import SkipLog, open_log  # noqa: E402
 
 INTEL = REPO / "data" / "intel.clf.bz2"
 INTEL_TARGET_S = 3.0
@@ -123,9 +127,13 @@ def _write_clouds(path: Path, clouds: int, points: int, compression: str, rng) -
     return clouds * points * 16, base
 
 
-def _decode_all(path: Path) -> tuple[int, float]:
+def _decode_all(path: Path, on_skip=None, **reader_kw) -> tuple[int, float]:
+    """Materialise every Frame (with ``reader_kw``: a McapReader with those options; *on_skip*:
+    in skip mode, ``frames(on_skip=...)``)."""
+    from slam.logs.mcap_reader import McapReader
+
     total, check = 0, 0.0
-    for f in open_log(path).frames():
+    for f in (McapReader(path, **reader_kw) if reader_kw else open_log(path)).frames(on_skip=on_skip):
         total += f.points.shape[0]
         check += float(f.points[0, 0])
     return total, check
@@ -171,6 +179,14 @@ def bench_pointcloud2(clouds: int, points: int, repeats: int, tmp: Path) -> dict
         # correctness: the first cloud reads back bit-exactly (float32 values as float64)
         first = next(iter(open_log(path).frames()))
         exact = bool(np.array_equal(first.points, base))
+        single = lambda: _decode_all(path, prefetch=0)  # noqa: E731
+        single_best, _, _ = _best(single, repeats)
+        skip_log = SkipLog()
+        skipping = lambda: _decode_all(path, on_skip=skip_log)  # noqa: E731
+        skip_best, _, (n_skip, _) = _best(skipping, repeats)
+        assert n_skip == clouds * points and len(skip_log) == 0
+        library = lambda: _decode_all(path, indexed=False)  # noqa: E731
+        library_best, _, _ = _best(library, repeats)
         raw_best, _, _ = _best(lambda: _mcap_raw(path), repeats)
         ref_best, _, n_ref = _best(lambda: _rosbags_decode(path), repeats)
         assert n_ref == clouds * points
@@ -185,6 +201,11 @@ def bench_pointcloud2(clouds: int, points: int, repeats: int, tmp: Path) -> dict
             "decode_cpu_s_of_best": round(_CPU[id(decode)], 4),
             "decode_MBps_per_cpu_s": round(mb / max(_CPU[id(decode)], 1e-9), 1),
             "bit_exact_round_trip": exact,
+            "single_thread_MBps": round(mb / single_best, 1),
+            "single_thread_cpu_s_of_best": round(_CPU[id(single)], 4),
+            "skip_mode_MBps": round(mb / skip_best, 1),
+            "reference_library_path_MBps": round(mb / library_best, 1),
+            "reference_library_path_cpu_s_of_best": round(_CPU[id(library)], 4),
             "reference_mcap_raw_read_MBps": round(mb / raw_best, 1),
             "reference_rosbags_deserialize_MBps": round(mb / ref_best, 1),
         }
@@ -221,6 +242,9 @@ def main() -> None:
         "pointcloud2_decode_MBps": p["zstd"]["decode_MBps"],
         "pointcloud2_decode_MBps_per_cpu_s": p["zstd"]["decode_MBps_per_cpu_s"],
         "pointcloud2_decode_MBps_uncompressed": p["none"]["decode_MBps"],
+        "pointcloud2_decode_MBps_single_thread": p["zstd"]["single_thread_MBps"],
+        "pointcloud2_decode_MBps_skip_mode": p["zstd"]["skip_mode_MBps"],
+        "pointcloud2_library_path_MBps": p["zstd"]["reference_library_path_MBps"],
         "pointcloud2_mcap_raw_read_zstd_MBps": p["zstd"]["reference_mcap_raw_read_MBps"],
         "pointcloud2_meets_500MBps_target": p["meets_target"],
     }

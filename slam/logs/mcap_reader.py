@@ -1,33 +1,35 @@
 """MCAP reader for ROS 2 (CDR) — and ROS 1 — messages: LaserScan / PointCloud2 frames with
 odometry, ground truth and TF.
 
-The container is read with the ``mcap`` library, streaming: with a summary section (chunk
-indexes) the ``SeekingReader`` visits chunks in log-time order holding one or a few chunks at
-a time; without one (a file written by a streaming recorder, or a truncated file) the file is read
-linearly, in file order (recorders write in arrival order).
+The container is read streaming. With a summary section (chunk indexes) the chunks are read by
+:mod:`slam.logs.mcap_chunks` — the file memory-mapped, each chunk decompressed once, payloads
+handed out as views, the next chunks decompressed on a worker thread — in the ``mcap`` library's
+log-time order, holding one or a few chunks at a time. Without one (a file written by a streaming
+recorder, or a truncated file), or with a chunk compression it does not know, the ``mcap``
+library reads the file linearly, in file order (recorders write in arrival order).
 Messages are decoded with types built from the schemas carried in the file
 (``ros2msg`` / ``ros2idl`` / ``ros1msg``), registered with rosbags' ``get_types_from_msg`` /
 ``get_types_from_idl``, so files written by any ROS 2 tool decode, not only our own. Chunk
 CRCs are checked, so flipped bytes surface as an error naming the message, not as garbage.
 
 Skipping (``frames(on_skip=...)``): a message that does not decode is left out; with a summary
-section, a corrupt chunk is left out and the next chunks are read (chunk by chunk from the chunk
-index, merged in log-time order as the ``SeekingReader`` does); without one, the linear read
-cannot find the next record after a corrupt or cut one, so the messages end there.
+section, a corrupt chunk (header, decompression, CRC or record layout) is reported with its byte
+offset and left out, and the next chunks are read by the indexed path in the same log-time order;
+without one, the linear read cannot find the next record after a corrupt or cut one, so the
+messages end there (as they do with ``indexed=False``, which reads through the ``mcap`` library).
 """
 
 from __future__ import annotations
 
-import heapq
-import io
-import struct
+import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from registration.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo
-from .ros_msgs import RawMessage, RosLogReader, build_typestore, normalize_msgtype
+from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages
+from .ros_msgs import RawMessage, RosLogReader, cached_typestore, normalize_msgtype
 
 __all__ = ["McapReader"]
 
@@ -35,95 +37,101 @@ _SCHEMA_ENCODINGS = {"ros2msg": "msg", "ros1msg": "msg", "ros2idl": "idl"}
 _MESSAGE_ENCODINGS = {"cdr", "ros1"}
 
 
+def default_prefetch() -> int:
+    """Chunks to decompress ahead: one worker beside the decoding thread on two CPUs, two on more."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cpus = os.cpu_count() or 1
+    return 0 if cpus < 2 else 1 if cpus == 2 else 2
+
+
 class McapReader(RosLogReader):
-    """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_msgs.RosLogReader` for the arguments)."""
+    """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_msgs.RosLogReader` for the arguments).
+
+    Args:
+        validate_crcs: check chunk CRCs (catches flipped bytes in uncompressed chunks).
+        prefetch: chunks decompressed ahead on worker threads by the indexed path (0: none, all
+            work on the calling thread); memory grows by that many chunks, not with the log.
+            Default: 1 on a machine with two CPUs, 2 with more, 0 with one.
+        indexed: use the indexed chunk path when the file has chunk indexes (False: always the
+            ``mcap`` library; both yield the same messages in the same order, but with
+            ``on_skip`` the library path ends at the first corrupt chunk instead of skipping it).
+    """
 
     format = "mcap"
 
-    def __init__(self, path: str | Path, topic: str | None = None, *, validate_crcs: bool = True, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        topic: str | None = None,
+        *,
+        validate_crcs: bool = True,
+        prefetch: int | None = None,
+        indexed: bool = True,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(path, topic, **kwargs)
-        self.validate_crcs = validate_crcs  # chunk CRCs: catches flipped bytes in uncompressed chunks
+        self.validate_crcs = validate_crcs
+        self.prefetch = default_prefetch() if prefetch is None else int(prefetch)
+        self.indexed = indexed
         self._topics: list[TopicInfo] | None = None
         self._store: Any = None
         self._encoding: dict[str, str] = {}  # topic -> message encoding
         self._bad_schema: dict[str, str] = {}  # topic -> why its schema cannot be used
+        self._summary_cache: tuple[Any] | None = None  # (summary or None,) once read
+        self._index_ok: bool | None = None  # whether the indexed path reads the file as the library does
 
     # -- container ----------------------------------------------------------------------------
 
-    def _summary(self, fh) -> Any:
-        """The summary section, or None when the file has none or its footer is unreadable."""
-        from mcap.reader import SeekingReader
+    def _summary(self) -> Any:
+        """The summary section (read once per reader), or None when the file has none or its
+        footer is unreadable."""
+        if self._summary_cache is None:
+            from mcap.reader import SeekingReader
 
-        try:
-            return SeekingReader(fh).get_summary()
-        except Exception:  # truncated / corrupt footer: fall back to a linear read
-            return None
+            with self._open() as fh:
+                try:
+                    summary = SeekingReader(fh).get_summary()
+                except Exception:  # truncated / corrupt footer: fall back to a linear read
+                    summary = None
+            self._summary_cache = (summary,)
+        return self._summary_cache[0]
 
-    def _records(self, fh, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[tuple[Any, Any, Any]]:
-        """(schema, channel, message) in log-time order; chunk-indexed when possible. With *on_skip*
-        and a chunk index, corrupt chunks are reported and skipped."""
+    def _use_index(self, on_skip: SkipHandler | None = None) -> bool:
+        """Whether the indexed chunk path reads this file.
+
+        Without *on_skip*: chunk indexes present, every compression known, every indexed channel
+        and every channel's schema listed in the summary; anything else goes to the ``mcap``
+        library, which then reports the problem with its own error. With *on_skip*: whenever there
+        are chunk indexes, since a chunk the indexed path cannot read (unknown compression, a channel
+        the summary lacks) is then reported and skipped like any damaged chunk, and a channel
+        without a schema makes its messages undecodable, each reported."""
+        summary = self._summary()
+        if not self.indexed or summary is None or not summary.chunk_indexes:
+            return False
+        if on_skip is not None:
+            return True
+        if self._index_ok is None:
+            self._index_ok = all(
+                ch.schema_id == 0 or ch.schema_id in summary.schemas for ch in summary.channels.values()
+            ) and all(
+                ci.compression in SUPPORTED_COMPRESSIONS and all(c in summary.channels for c in ci.message_index_offsets)
+                for ci in summary.chunk_indexes
+            )
+        return self._index_ok
+
+    def _library_records(self, fh, topics: set[str] | None) -> Iterator[tuple[Any, Any, Any]]:
+        """(schema, channel, message) from the ``mcap`` library: in log-time order when the file is
+        chunk-indexed, else in file order."""
         from mcap.reader import NonSeekingReader, SeekingReader
 
-        summary = self._summary(fh)
+        summary = self._summary()
         fh.seek(0)
         if summary is not None and summary.chunk_indexes:
-            if on_skip is not None:
-                return self._chunked_records(fh, summary, topics, on_skip)
             return SeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=True)
         # File order: log_time_order=True would make the mcap library load the whole file to sort it.
         return NonSeekingReader(fh, validate_crcs=self.validate_crcs).iter_messages(topics=topics, log_time_order=False)
-
-    def _chunk_messages(self, fh, index: Any, summary: Any, topics: set[str] | None) -> list[tuple[Any, Any, Any]]:
-        """(schema, channel, message) of one chunk (file order); raises whatever a corrupt chunk raises."""
-        from mcap.data_stream import ReadDataStream
-        from mcap.opcode import Opcode
-        from mcap.records import Chunk, Message
-        from mcap.stream_reader import breakup_chunk
-
-        fh.seek(index.chunk_start_offset)
-        raw = fh.read(index.chunk_length)  # opcode (1 byte), record length (uint64), Chunk record
-        if len(raw) != index.chunk_length or raw[0] != Opcode.CHUNK:
-            raise ValueError(f"no chunk record of {index.chunk_length} bytes at byte offset {index.chunk_start_offset}")
-        (length,) = struct.unpack_from("<Q", raw, 1)
-        if length != index.chunk_length - 9:
-            raise ValueError(f"chunk record length {length}, the chunk index says {index.chunk_length - 9}")
-        chunk = Chunk.read(ReadDataStream(io.BytesIO(raw[9:])))
-        out = []
-        for rec in breakup_chunk(chunk, validate_crc=self.validate_crcs):
-            if isinstance(rec, Message):
-                channel = summary.channels[rec.channel_id]
-                if topics is None or channel.topic in topics:
-                    out.append((summary.schemas.get(channel.schema_id), channel, rec))
-        return out
-
-    def _chunked_records(self, fh, summary: Any, topics: set[str] | None, on_skip: SkipHandler) -> Iterator[tuple[Any, Any, Any]]:
-        """Messages of *topics* in log-time order from the chunk index, skipping corrupt chunks.
-
-        The order is the ``SeekingReader``'s: by log time, then by chunk offset, then by position
-        in the chunk; a chunk is opened when the merge reaches its first log time.
-        """
-        heap: list[tuple[int, int, int, Any]] = []  # (log time, chunk offset, index in chunk or -1, item)
-        for ci in summary.chunk_indexes:
-            ids = ci.message_index_offsets
-            if topics is not None and ids and not any(c in summary.channels and summary.channels[c].topic in topics for c in ids):
-                continue
-            heap.append((ci.message_start_time, ci.chunk_start_offset, -1, ci))
-        heapq.heapify(heap)
-        while heap:
-            t, offset, i, item = heapq.heappop(heap)
-            if i >= 0:
-                yield item
-                continue
-            try:
-                messages = self._chunk_messages(fh, item, summary, topics)
-            except Exception as exc:  # mcap raises CRC, decompression, struct and key errors
-                why = f"{type(exc).__name__}: {exc}".rstrip(": ")
-                on_skip(LogFormatError(self.path, f"byte offset {offset}",
-                                       f"corrupt MCAP chunk (log time {item.message_start_time / 1e9:.9f}–"
-                                       f"{item.message_end_time / 1e9:.9f} s) skipped: {why}"))
-                continue
-            for k, m in enumerate(messages):
-                heapq.heappush(heap, (m[2].log_time, offset, k, m))
 
     def _open(self):
         try:
@@ -147,18 +155,17 @@ class McapReader(RosLogReader):
         (*tolerant*: up to the first corrupt or cut record, which the message pass then reports)."""
         if self._topics is not None:
             return
-        with self._open() as fh:
-            summary = self._summary(fh)
-            schemas: dict[int, Any] = {}
-            channels: dict[int, Any] = {}
-            counts: dict[int, int] = {}
-            if summary is not None and summary.statistics is not None:
-                schemas, channels = dict(summary.schemas), dict(summary.channels)
-                counts = dict(summary.statistics.channel_message_counts)
-            else:
-                fh.seek(0)
+        summary = self._summary()
+        schemas: dict[int, Any] = {}
+        channels: dict[int, Any] = {}
+        counts: dict[int, int] = {}
+        if summary is not None and summary.statistics is not None:
+            schemas, channels = dict(summary.schemas), dict(summary.channels)
+            counts = dict(summary.statistics.channel_message_counts)
+        else:
+            with self._open() as fh:
                 try:
-                    for schema, channel, _msg in self._guard(self._records(fh, None), fh, {}):
+                    for schema, channel, _msg in self._guard(self._library_records(fh, None), fh.tell, {}):
                         channels[channel.id] = channel
                         if schema is not None:
                             schemas[schema.id] = schema
@@ -182,14 +189,24 @@ class McapReader(RosLogReader):
             else:
                 defs[mt] = (mt, _SCHEMA_ENCODINGS[schema.encoding], schema.data.decode("utf-8", "replace"))
         try:
-            self._store = build_typestore(defs.values())
+            self._store = cached_typestore(tuple(defs.values()))
         except Exception as exc:  # rosbags raises several types for malformed definitions
             raise LogFormatError(self.path, "schema records", f"bad message definition: {exc}") from None
         self._topics = [TopicInfo(name, mt, n) for name, (mt, n) in sorted(per_topic.items())]
 
-    def _guard(self, it: Iterator, fh, counts: dict[str, int] | None = None, on_skip: SkipHandler | None = None) -> Iterator:
+    def _guard(
+        self,
+        it: Iterator,
+        tell: Callable[[], int],
+        counts: dict[str, int] | None = None,
+        topic_of: Callable[[Any], str] | None = None,
+        on_skip: SkipHandler | None = None,
+    ) -> Iterator:
         """Re-raise container errors as LogFormatError with the byte offset and last good message
-        (with *on_skip*: report it there and end the messages)."""
+        (with *on_skip*: report it there and end the messages, the stream cannot be resumed).
+
+        *tell* gives the file position when the error carries none; *topic_of(item)* the topic of
+        an item (default ``item[1].topic``), counted into *counts*."""
         last = "before the first message"
         while True:
             try:
@@ -197,18 +214,20 @@ class McapReader(RosLogReader):
             except StopIteration:
                 return
             except Exception as exc:  # mcap raises McapError, EndOfFile, struct.error, zstd errors, ...
-                try:
-                    pos = fh.tell()
-                except (OSError, ValueError):
-                    pos = -1
-                why = f"{type(exc).__name__}: {exc}".rstrip(": ")
+                pos = getattr(exc, "offset", None)
+                if pos is None:
+                    try:
+                        pos = tell()
+                    except (OSError, ValueError):
+                        pos = -1
+                why = str(exc) if isinstance(exc, ChunkError) else f"{type(exc).__name__}: {exc}".rstrip(": ")
                 error = LogFormatError(self.path, f"byte offset {pos} ({last})", f"corrupt or truncated MCAP: {why}")
                 if on_skip is None:
                     raise error from None
                 on_skip(error)
                 return
             if counts is not None:
-                topic = item[1].topic
+                topic = item[1].topic if topic_of is None else topic_of(item)
                 counts[topic] = counts.get(topic, -1) + 1
                 last = f"after {topic} message {counts[topic]}"
             yield item
@@ -220,13 +239,52 @@ class McapReader(RosLogReader):
 
     def _raw_messages(self, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[RawMessage]:
         self._load_meta()
+        counts: dict[str, int] = {}
+        if self._use_index(on_skip):
+            yield from self._indexed_raw_messages(topics, counts, on_skip)
+            return
         with self._open() as fh:
-            counts: dict[str, int] = {}
-            for schema, channel, message in self._guard(self._records(fh, topics, on_skip), fh, counts, on_skip):
+            records = self._library_records(fh, topics)
+            for schema, channel, message in self._guard(records, fh.tell, counts, on_skip=on_skip):
                 topic = channel.topic
                 mt = normalize_msgtype(schema.name) if schema is not None else "(no schema)"
                 k = counts[topic]
                 yield RawMessage(k, topic, mt, int(message.log_time), message.data, f"{topic} message {k}")
+
+    def _indexed_raw_messages(
+        self, topics: set[str] | None, counts: dict[str, int], on_skip: SkipHandler | None
+    ) -> Iterator[RawMessage]:
+        """The chunk-indexed path (:func:`slam.logs.mcap_chunks.indexed_messages`); payloads are views.
+        With *on_skip*, a chunk that cannot be read is reported (``byte offset N``) and left out."""
+        summary = self._summary()
+        meta: dict[int, tuple[str, str]] = {}  # channel id -> (topic, msgtype)
+        for cid, ch in summary.channels.items():
+            schema = summary.schemas.get(ch.schema_id)
+            meta[cid] = (ch.topic, normalize_msgtype(schema.name) if schema is not None else "(no schema)")
+        ids = None if topics is None else [cid for cid, (topic, _) in meta.items() if topic in topics]
+
+        def chunk_skipped(exc: ChunkError, index: Any) -> None:
+            assert on_skip is not None
+            span = f"log time {index.message_start_time / 1e9:.9f}–{index.message_end_time / 1e9:.9f} s"
+            what = f"corrupt MCAP chunk ({span}) skipped: {exc}"
+            on_skip(LogFormatError(self.path, f"byte offset {exc.offset}", what))
+
+        it = indexed_messages(
+            self.path,
+            summary,
+            ids,
+            validate_crcs=self.validate_crcs,
+            prefetch=self.prefetch,
+            on_error=None if on_skip is None else chunk_skipped,
+        )
+        try:
+            topic_of = lambda item: meta[item[0]][0]  # noqa: E731
+            for cid, log_time, data in self._guard(it, lambda: -1, counts, topic_of, on_skip):
+                topic, mt = meta[cid]
+                k = counts[topic]
+                yield RawMessage(k, topic, mt, log_time, data, f"{topic} message {k}")
+        finally:
+            it.close()
 
     def _decode(self, raw: RawMessage) -> Any:
         if raw.topic in self._bad_schema:

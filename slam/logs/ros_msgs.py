@@ -101,6 +101,14 @@ def build_typestore(definitions: Iterable[tuple[str, str, str]]):
     return store
 
 
+@functools.lru_cache(maxsize=16)
+def cached_typestore(definitions: tuple[tuple[str, str, str], ...]):
+    """:func:`build_typestore` memoised on the exact definitions: reopening a log (or another log
+    with the same schemas) reuses the parsed types and rosbags' generated deserialisers, which
+    cost tens of milliseconds per file otherwise. The store is only read from after building."""
+    return build_typestore(definitions)
+
+
 # ----------------------------------------------------------------------------- stamps
 
 
@@ -564,7 +572,7 @@ class RawMessage:
     topic: str
     msgtype: str
     log_time_ns: int
-    data: Any  # serialised bytes
+    data: Any  # the serialised message: bytes, or a read-only memoryview (MCAP indexed path)
     where: str = ""  # e.g. "/scan message 12", for error messages
 
 
