@@ -39,6 +39,7 @@ class PipelineBackend:
         self._since_solve = 0
         self.solve_time_s = 0.0
         self.pruned_loops = 0
+        self.smoother_restarts = 0
         self._smoother = None
         if config.kind == "gtsam":
             from slam.backends.gtsam_backend import IncrementalSmoother
@@ -72,7 +73,15 @@ class PipelineBackend:
         """Refresh the estimate after a keyframe (iSAM2 step, or a periodic chordal batch solve)."""
         t0 = time.perf_counter()
         if self._smoother is not None:
-            self._smoother.update()
+            try:
+                self._smoother.update()
+            except RuntimeError:
+                # GTSAM's "indeterminant linear system": iSAM2's incremental factorisation can lose
+                # definiteness numerically (seen on the Freiburg hospital log at keyframe 2350, with
+                # every edge finite and well conditioned). Recover: batch-solve the whole graph and
+                # restart iSAM2 from that solution.
+                self._restart_smoother()
+                loop_added = True
             if loop_added:
                 self._poses = list(self._smoother.estimate()[1])
             else:
@@ -83,6 +92,19 @@ class PipelineBackend:
                 self._poses = list(self._solve_chordal(self.poses))
                 self._since_solve = 0
         self.solve_time_s += time.perf_counter() - t0
+
+    def _restart_smoother(self) -> None:
+        """A fresh iSAM2 holding the whole graph, initialised at its batch LM solution."""
+        from slam.backends.gtsam_backend import IncrementalSmoother
+
+        self.smoother_restarts += 1
+        P = self._solve_batch(self.poses)
+        self._smoother = IncrementalSmoother(self.dim, relinearize_threshold=self.config.isam2_relinearize_threshold)
+        for nid, T in zip(self.graph.node_ids, P):
+            self._smoother.add_node(int(nid), T)
+        for edge in self.graph.edges():
+            self._smoother.add_edge(edge.i, edge.j, edge.measurement, edge.information, edge.kernel)
+        self._smoother.update()
 
     def _solve_chordal(self, initial: Array) -> Array:
         from slam.backends.chordal import solve_chordal

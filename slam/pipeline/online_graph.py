@@ -70,4 +70,5 @@ class OnlineGraph:
         """Loop detection counters plus the closures pruned by the final solve."""
         s = vars(self.closer.stats).copy()
         s["pruned"] = self.backend.pruned_loops
+        s["isam2_restarts"] = self.backend.smoother_restarts
         return s
