@@ -33,16 +33,29 @@ def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -
     scatter eigenvalues ``(N, 3)`` are returned too, for planarity tests."""
     k = min(k, tree.n)
     _, nn = tree.query(points, k=k, workers=workers if len(points) >= 20000 else 1)
-    nb = tree.data[nn]  # (N, k, d)
-    c = nb - nb.mean(axis=1, keepdims=True)
-    if nb.shape[2] == 2:
+    data = tree.data
+    # One contiguous (N, k) array per axis, centred on the neighbourhood mean: cheaper than the
+    # (N, k, d) gather and strided reductions for the few-point batches of 2D scans.
+    cols = [data[:, j].take(nn) for j in range(data.shape[1])]
+    for c in cols:
+        c -= (c.sum(axis=1) / k)[:, None]
+    if len(cols) == 2:
         # 2×2 scatter [[a, b], [b, c]]: the principal axis is at ½·atan2(2b, a − c); the normal is ⊥ to it.
-        a = np.einsum("nk,nk->n", c[:, :, 0], c[:, :, 0])
-        b = np.einsum("nk,nk->n", c[:, :, 0], c[:, :, 1])
-        cc = np.einsum("nk,nk->n", c[:, :, 1], c[:, :, 1])
+        cx, cy = cols
+        a = np.einsum("nk,nk->n", cx, cx)
+        b = np.einsum("nk,nk->n", cx, cy)
+        cc = np.einsum("nk,nk->n", cy, cy)
         phi = 0.5 * np.arctan2(2.0 * b, a - cc)
-        return np.column_stack([-np.sin(phi), np.cos(phi)])
-    C = np.einsum("nki,nkj->nij", c, c)
+        out = np.empty((len(phi), 2))
+        np.negative(np.sin(phi), out=out[:, 0])
+        np.cos(phi, out=out[:, 1])
+        return out
+    C = np.empty((len(nn), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            C[:, i, j] = np.einsum("nk,nk->n", cols[i], cols[j])
+            if j != i:
+                C[:, j, i] = C[:, i, j]
     ev, V = np.linalg.eigh(C)
     if return_eigenvalues:
         return V[:, :, 0], ev
