@@ -23,6 +23,7 @@ from .config import IcpConfig
 from .covariance import (Chi2Verdict, chi2_test, covariance_from_information, fisher_information,
                          jacobian_plane, jacobian_point)
 from .errors import DegenerateInputError, GeometryError
+from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher, pair_distances
 from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
@@ -200,33 +201,33 @@ def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: 
     Used at the end of every ICP, and to attach a covariance to poses found by another
     registration (KISS-ICP). *S* is ``(N, d)`` in the source frame (m)."""
     d = tgt.dim
-    R, t = T[:d, :d], T[:d, 3]
-    moved = S @ R.T + t
-    dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=_workers(len(S), config.workers))
-    return _evaluate(S, tgt, T, moved, dist, idx, gate, config, iterations, converged)
+    moved = S @ T[:d, :d].T + T[:d, 3]
+    _, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=_workers(len(S), config.workers))
+    return _evaluate(S, tgt, T, moved, idx, gate, config, iterations, converged)
 
 
-def _evaluate(S: Array, tgt: IcpTarget, T: Array, moved: Array, dist: Array, idx: NDArray[np.intp], gate: float,
+def _evaluate(S: Array, tgt: IcpTarget, T: Array, moved: Array, idx: NDArray[np.intp], gate: float,
               config: IcpConfig, iterations: int, converged: bool) -> IcpResult:
-    """:func:`evaluate_alignment` from the nearest-neighbour query ``(dist, idx)`` of ``moved = T S`` at *gate*
-    (the ICP loop hands over its last query when it was made at the final pose)."""
+    """:func:`evaluate_alignment` from the gated nearest neighbours *idx* of ``moved = T S``
+    (unmatched = number of target points)."""
     d = tgt.dim
     R = T[:d, :d]
     n_tgt = len(tgt.points)
     if idx[-1] < n_tgt and idx.max() < n_tgt:  # every point matched: no mask copies
-        src, mv, idx_in, d_in = S, moved, idx, dist
+        src, mv, idx_in = S, moved, idx
     else:
         ok = idx < n_tgt
-        src, mv, idx_in, d_in = S[ok], moved[ok], idx[ok], dist[ok]
+        src, mv, idx_in = S[ok], moved[ok], idx[ok]
     n_in = len(idx_in)
     if n_in < config.min_inliers:
         raise DegenerateInputError(f"ICP ended with {n_in} pairs within {gate} m (need {config.min_inliers})")
+    matched = tgt.points.take(idx_in, axis=0)
     w = None
     if config.robust != "none":
-        w = robust_weights(d_in, config)
+        w = robust_weights(pair_distances(mv, matched), config)
         keep = w > 0
-        src, w, idx_in, mv = src[keep], w[keep], idx_in[keep], mv[keep]
-    diff = mv - tgt.points.take(idx_in, axis=0)
+        src, w, idx_in, mv, matched = src[keep], w[keep], idx_in[keep], mv[keep], matched[keep]
+    diff = mv - matched
     dof = 3 if d == 2 else 6
     if config.covariance_model == "plane":
         nrm = tgt.normals(idx_in)
@@ -267,20 +268,22 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     tgt = _as_target(target, config)
     S, T = _prepare(source, tgt, init, config)
     d, n = tgt.dim, len(S)
-    tree, tpts, workers = tgt.tree, tgt.points, _workers(n, config.workers)
+    tpts = tgt.points
     n_tgt = len(tpts)
+    # The matches are searched again only where the motion since the last search could change them.
+    matcher = IncrementalMatcher(tgt.tree, _workers(n, config.workers), incremental=n >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
     tol_t, tol_r = config.tol_translation, config.tol_rotation
-    # Unweighted, the closed-form step from the same correspondences returns the same pose: a query
-    # that repeats the correspondences the current pose was solved from is the fixed point (the
-    # increment would be exactly 0), and that query is also the final evaluation's.
+    # Unweighted, the closed-form step from the same correspondences returns the same pose: matches
+    # that repeat those the current pose was solved from are the fixed point (the increment would be
+    # exactly 0), and they are also the final evaluation's.
     repeat_is_fixed_point = not robust and tol_t > 0 and tol_r > 0
     pm_all = S.sum(axis=0) / n
     Sc_all = S - pm_all
     R, t = T[:d, :d].copy(), T[:d, 3].copy()
     th = math.atan2(R[1, 0], R[0, 0]) if d == 2 else 0.0
     solved_from = None  # correspondences (idx, unmatched = n_tgt) the current pose was solved from
-    last = None  # (gate, moved, dist, idx) of the last query, while the pose is still the one it was made at
+    moved = None  # the source moved by the current pose, when already computed
     it = 0
     converged = False
     for gate in config.gates:
@@ -288,21 +291,20 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
         while it < config.max_iterations:
             it += 1
             moved = S @ R.T + t
-            dist, idx = tree.query(moved, k=1, distance_upper_bound=gate, workers=workers)
-            last = (gate, moved, dist, idx)
+            idx = matcher.match(moved, gate)
             if repeat_is_fixed_point and solved_from is not None and np.array_equal(idx, solved_from):
                 converged = True
                 break
             if idx[-1] < n_tgt and idx.max() < n_tgt:  # every point matched: no mask copies
-                P, Pc, pm, Q, dsel = S, Sc_all, pm_all, tpts.take(idx, axis=0), dist
+                P, Pc, pm, mv, Q = S, Sc_all, pm_all, moved, tpts.take(idx, axis=0)
             else:
                 ok = idx < n_tgt
                 n_ok = int(np.count_nonzero(ok))
                 if n_ok < config.min_inliers:
                     raise DegenerateInputError(
                         f"ICP iteration {it}: {n_ok} pairs within {gate} m (need {config.min_inliers})")
-                P, Pc, pm, Q, dsel = S[ok], None, None, tpts.take(idx[ok], axis=0), dist[ok]
-            R_new, t_new = _svd_step(P, Q, robust_weights(dsel, config) if robust else None, Pc, pm)
+                P, Pc, pm, mv, Q = S[ok], None, None, moved[ok], tpts.take(idx[ok], axis=0)
+            R_new, t_new = _svd_step(P, Q, robust_weights(pair_distances(mv, Q), config) if robust else None, Pc, pm)
             if d == 2:
                 th_new = math.atan2(R_new[1, 0], R_new[0, 0])
                 dt = math.hypot(*(t_new - t).tolist())
@@ -313,13 +315,13 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
                 dt = float(np.linalg.norm(t_new - t))
                 dr = float(np.linalg.norm(R_new - R)) / math.sqrt(2.0)  # = 2 sin(α/2) ≈ α, no √ε floor
             R, t = R_new, t_new
-            solved_from, last = idx, None
+            solved_from, moved = idx, None
             if dt < tol_t and dr < tol_r:
                 converged = True
                 break
     T = np.eye(4)
     T[:d, :d], T[:d, 3] = R, t
+    if moved is None:
+        moved = S @ R.T + t
     gate = config.gates[-1]
-    if last is not None and last[0] == gate:
-        return _evaluate(S, tgt, T, last[1], last[2], last[3], gate, config, it, converged)
-    return evaluate_alignment(S, tgt, T, gate, config, it, converged)
+    return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
