@@ -96,3 +96,29 @@ def test_icp_is_the_same_with_and_without_incremental_matching(monkeypatch, robu
     assert a.iterations == b.iterations and a.converged == b.converged and a.inliers == b.inliers
     assert np.abs(a.transform - b.transform).max() < 1e-12
     np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=0)
+
+
+def test_point_to_plane_is_the_same_with_and_without_incremental_matching(monkeypatch):
+    """Point-to-plane ICP on a box room gives the same pose and iterations whether its matches come
+    from incremental re-searches or from a full query every iteration."""
+    from registration import point_to_plane as p2pl
+
+    rng = np.random.default_rng(9)
+    faces = []
+    for ax in range(3):
+        for v in (-1.5, 1.5):
+            p = rng.uniform(-1.5, 1.5, size=(800, 3))
+            p[:, ax] = v
+            faces.append(p)
+    P = np.vstack(faces)
+    T = geo.se3_exp([0.1, -0.05, 0.04, 0.02, -0.01, 0.03])
+    src = geo.transform_points(geo.inverse(T), P[::2]) + rng.normal(scale=0.005, size=(len(P[::2]), 3))
+    cfg = IcpConfig(gates=(0.5, 0.2), tol_translation=1e-10, tol_rotation=1e-10, max_iterations=100)
+    out = []
+    for threshold in (0, 10**9):
+        monkeypatch.setattr(p2pl, "INCREMENTAL_MIN_POINTS", threshold)
+        out.append(p2pl.icp_point_to_plane(src, P, None, cfg))
+    a, b = out
+    assert a.iterations == b.iterations and a.inliers == b.inliers
+    assert np.abs(a.transform - b.transform).max() < 1e-12
+    assert np.abs(a.transform - T).max() < 0.01
