@@ -271,7 +271,7 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     tpts = tgt.points
     n_tgt = len(tpts)
     # The matches are searched again only where the motion since the last search could change them.
-    matcher = IncrementalMatcher(tgt.tree, _workers(n, config.workers), incremental=n >= INCREMENTAL_MIN_POINTS)
+    matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=n >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
     tol_t, tol_r = config.tol_translation, config.tol_rotation
     # Unweighted, the closed-form step from the same correspondences returns the same pose: matches

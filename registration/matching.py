@@ -32,6 +32,9 @@ _TAU = 1e-9
 # so re-searching a subset saves little: the matcher then searches all points at once with k = 1.
 INCREMENTAL_MIN_POINTS = 2000
 
+# Below this many points per search, scipy's thread start/join costs more than a parallel search saves.
+_PARALLEL_MIN_POINTS = 20000
+
 # Search bound B as a multiple of the gate: a wider bound lets points outside the gate move further
 # before they are searched again, at the price of a longer search for them.
 _BOUND_FACTOR = 2.0
@@ -49,10 +52,11 @@ class IncrementalMatcher:
     :meth:`match` returns the same indices as ``tree.query(moved, k=1, distance_upper_bound=gate)``
     (unmatched = ``tree.n``). With *incremental* it searches only the points whose certified region
     (module docstring) the motion left; otherwise it searches all of them, and a repeated call with
-    the same *moved* array and gate returns the previous answer. Points ``(N, d)`` in the tree's frame (m).
+    the same *moved* array and gate returns the previous answer. *workers* are cKDTree threads for
+    searches of ≥ 20000 points (smaller ones use one). Points ``(N, d)`` in the tree's frame (m).
     """
 
-    def __init__(self, tree: cKDTree, workers: int = 1, incremental: bool = True) -> None:
+    def __init__(self, tree: cKDTree, workers: int = -1, incremental: bool = True) -> None:
         self.tree = tree
         self.workers = workers
         self.incremental = incremental
@@ -61,9 +65,12 @@ class IncrementalMatcher:
         self._at: Array | None = None  # positions of each point's last search (the array itself when not incremental)
         self._gate: float | None = None
 
+    def _workers(self, n: int) -> int:
+        return self.workers if n >= _PARALLEL_MIN_POINTS else 1
+
     def _search(self, points: Array, gate: float) -> tuple[Array, Array, Array, float]:
         bound = _BOUND_FACTOR * gate
-        dist, idx = self.tree.query(points, k=2, distance_upper_bound=bound, workers=self.workers)
+        dist, idx = self.tree.query(points, k=2, distance_upper_bound=bound, workers=self._workers(len(points)))
         self.searches += 1
         self.searched_points += len(points)
         return dist[:, 0].copy(), dist[:, 1].copy(), idx[:, 0].copy(), bound
@@ -80,7 +87,7 @@ class IncrementalMatcher:
         """Index of the nearest tree point closer than *gate* to each row of *moved*, else ``tree.n``."""
         if not self.incremental:
             if moved is not self._at or gate != self._gate:
-                self._i1 = self.tree.query(moved, k=1, distance_upper_bound=gate, workers=self.workers)[1]
+                self._i1 = self.tree.query(moved, k=1, distance_upper_bound=gate, workers=self._workers(len(moved)))[1]
                 self._at, self._gate = moved, gate
                 self.searches += 1
                 self.searched_points += len(moved)

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se3_exp
-from .icp import IcpResult, IcpTarget, _as_target, _evaluate, _prepare, _workers, robust_weights
+from .icp import IcpResult, IcpTarget, _as_target, _evaluate, _prepare, robust_weights
 from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher
 
 Array = NDArray[np.float64]
@@ -75,7 +75,7 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     d = tgt.dim
     normals = tgt.normals()
     n_tgt = len(tgt.points)
-    matcher = IncrementalMatcher(tgt.tree, _workers(len(S), config.workers), incremental=len(S) >= INCREMENTAL_MIN_POINTS)
+    matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=len(S) >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
     it = 0
     converged = False
