@@ -12,6 +12,7 @@ the total. At the fixed point the covariance ``σ² (∂²f/∂δ²)⁻¹`` and 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,7 @@ from .config import IcpConfig
 from .covariance import (Chi2Verdict, chi2_test, covariance_from_information, fisher_information,
                          jacobian_plane, jacobian_point)
 from .errors import DegenerateInputError, GeometryError
+from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher, pair_distances
 from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
@@ -137,13 +139,21 @@ def _workers(n: int, workers: int) -> int:
     return workers if n >= _PARALLEL_MIN_QUERIES else 1
 
 
-def _svd_step(P: Array, Q: Array, w: Array | None) -> tuple[Array, Array]:
+def _svd_step(P: Array, Q: Array, w: Array | None, Pc: Array | None = None,
+              pm: Array | None = None) -> tuple[Array, Array]:
     """Inner-loop form of :func:`registration.align.align_svd` (same equations, no input checks;
-    degenerate pairs are caught by the checks of the final :func:`evaluate_alignment`): ``(R, t)``.
+    degenerate pairs are caught by the checks of the final evaluation): ``(R, t)``.
+
+    Unweighted, the centred source ``Pc = P − pm`` may be passed in: ICP matches the same source
+    points every iteration, so only the target side changes (Arun 1987).
     In 2D the maximiser of tr(R H) is closed form, θ = atan2(H01 − H10, H00 + H11)."""
+    n = len(P)
     if w is None:
-        pm, qm = P.mean(axis=0), Q.mean(axis=0)
-        H = (P - pm).T @ (Q - qm)
+        if Pc is None:
+            pm = P.sum(axis=0) / n  # bit-identical to P.mean(axis=0), with less overhead
+            Pc = P - pm
+        qm = Q.sum(axis=0) / n
+        H = Pc.T @ (Q - qm)
     else:
         sw = w.sum()
         if sw <= 0:
@@ -151,15 +161,16 @@ def _svd_step(P: Array, Q: Array, w: Array | None) -> tuple[Array, Array]:
         pm, qm = (w @ P) / sw, (w @ Q) / sw
         H = (P - pm).T @ ((Q - qm) * w[:, None])
     if P.shape[1] == 2:
-        th = np.arctan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
-        c, s = np.cos(th), np.sin(th)
-        R = np.array([[c, -s], [s, c]])
-    else:
-        U, _, Vt = np.linalg.svd(H)
-        V = Vt.T
-        if np.linalg.det(V @ U.T) < 0:
-            V[:, -1] = -V[:, -1]
-        R = V @ U.T
+        (h00, h01), (h10, h11) = H.tolist()
+        th = math.atan2(h01 - h10, h00 + h11)
+        c, s = math.cos(th), math.sin(th)
+        (p0, p1), (q0, q1) = pm.tolist(), qm.tolist()
+        return np.array(((c, -s), (s, c))), np.array((q0 - (c * p0 - s * p1), q1 - (s * p0 + c * p1)))
+    U, _, Vt = np.linalg.svd(H)
+    V = Vt.T
+    if np.linalg.det(V @ U.T) < 0:
+        V[:, -1] = -V[:, -1]
+    R = V @ U.T
     return R, qm - R @ pm
 
 
@@ -190,33 +201,49 @@ def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: 
     Used at the end of every ICP, and to attach a covariance to poses found by another
     registration (KISS-ICP). *S* is ``(N, d)`` in the source frame (m)."""
     d = tgt.dim
-    R, t = T[:d, :d], T[:d, 3]
-    moved = S @ R.T + t
-    dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=_workers(len(S), config.workers))
-    ok = np.isfinite(dist)
-    n_in = int(ok.sum())
+    moved = S @ T[:d, :d].T + T[:d, 3]
+    _, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=_workers(len(S), config.workers))
+    return _evaluate(S, tgt, T, moved, idx, gate, config, iterations, converged)
+
+
+def _evaluate(S: Array, tgt: IcpTarget, T: Array, moved: Array, idx: NDArray[np.intp], gate: float,
+              config: IcpConfig, iterations: int, converged: bool) -> IcpResult:
+    """:func:`evaluate_alignment` from the gated nearest neighbours *idx* of ``moved = T S``
+    (unmatched = number of target points)."""
+    d = tgt.dim
+    R = T[:d, :d]
+    n_tgt = len(tgt.points)
+    if idx[-1] < n_tgt and idx.max() < n_tgt:  # every point matched: no mask copies
+        src, mv, idx_in = S, moved, idx
+    else:
+        ok = idx < n_tgt
+        src, mv, idx_in = S[ok], moved[ok], idx[ok]
+    n_in = len(idx_in)
     if n_in < config.min_inliers:
         raise DegenerateInputError(f"ICP ended with {n_in} pairs within {gate} m (need {config.min_inliers})")
-    w = robust_weights(dist[ok], config)
-    keep = w > 0
-    src, w, idx_in = S[ok][keep], w[keep], idx[ok][keep]
-    diff = moved[ok][keep] - tgt.points[idx_in]
+    matched = tgt.points.take(idx_in, axis=0)
+    w = None
+    if config.robust != "none":
+        w = robust_weights(pair_distances(mv, matched), config)
+        keep = w > 0
+        src, w, idx_in, mv, matched = src[keep], w[keep], idx_in[keep], mv[keep], matched[keep]
+    diff = mv - matched
     dof = 3 if d == 2 else 6
     if config.covariance_model == "plane":
         nrm = tgt.normals(idx_in)
         e = np.einsum("ij,ij->i", diff, nrm)
         J = jacobian_plane(src, nrm, R)
-        n_res = len(e)
+        w_res = w
     else:
         e = diff.reshape(-1)
         J = jacobian_point(src, R)
-        n_res = e.size
-    w_res = w if config.covariance_model == "plane" else np.repeat(w, d)
-    res = float(np.sum(w_res * e * e))
+        w_res = None if w is None else np.repeat(w, d)
+    n_res = e.size
+    res = float(e @ e) if w_res is None else float(np.sum(w_res * e * e))
     verdict = chi2_test(res, n_res, dof, None if config.sigma is None else config.sigma**2,
                         config.chi2_factor, config.false_rejection_rate)
     cov, degenerate = covariance_from_information(fisher_information(J, w), verdict.sigma2)
-    rmse = float(np.sqrt(np.mean(np.einsum("ij,ij->i", diff, diff))))
+    rmse = math.sqrt(float(np.vdot(diff, diff)) / len(diff))
     return IcpResult(T, rmse, int(len(src)), len(src) / len(S), iterations, converged, res, n_res, dof,
                      cov, degenerate, verdict)
 
@@ -240,37 +267,61 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     config = config or IcpConfig()
     tgt = _as_target(target, config)
     S, T = _prepare(source, tgt, init, config)
-    d = tgt.dim
-    it = 0
-    converged = False
-    tree, tpts, workers = tgt.tree, tgt.points, _workers(len(S), config.workers)
+    d, n = tgt.dim, len(S)
+    tpts = tgt.points
+    n_tgt = len(tpts)
+    # The matches are searched again only where the motion since the last search could change them.
+    matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=n >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
     tol_t, tol_r = config.tol_translation, config.tol_rotation
+    # Unweighted, the closed-form step from the same correspondences returns the same pose: matches
+    # that repeat those the current pose was solved from are the fixed point (the increment would be
+    # exactly 0), and they are also the final evaluation's.
+    repeat_is_fixed_point = not robust and tol_t > 0 and tol_r > 0
+    pm_all = S.sum(axis=0) / n
+    Sc_all = S - pm_all
     R, t = T[:d, :d].copy(), T[:d, 3].copy()
+    th = math.atan2(R[1, 0], R[0, 0]) if d == 2 else 0.0
+    solved_from = None  # correspondences (idx, unmatched = n_tgt) the current pose was solved from
+    moved = None  # the source moved by the current pose, when already computed
+    it = 0
+    converged = False
     for gate in config.gates:
         converged = False
         while it < config.max_iterations:
             it += 1
-            dist, idx = tree.query(S @ R.T + t, k=1, distance_upper_bound=gate, workers=workers)
-            if dist[-1] < np.inf and dist.max() < np.inf:  # every point matched: no mask copies
-                P, Q, dsel = S, tpts[idx], dist
+            moved = S @ R.T + t
+            idx = matcher.match(moved, gate)
+            if repeat_is_fixed_point and solved_from is not None and np.array_equal(idx, solved_from):
+                converged = True
+                break
+            if idx[-1] < n_tgt and idx.max() < n_tgt:  # every point matched: no mask copies
+                P, Pc, pm, mv, Q = S, Sc_all, pm_all, moved, tpts.take(idx, axis=0)
             else:
-                ok = dist < np.inf
-                if np.count_nonzero(ok) < config.min_inliers:
+                ok = idx < n_tgt
+                n_ok = int(np.count_nonzero(ok))
+                if n_ok < config.min_inliers:
                     raise DegenerateInputError(
-                        f"ICP iteration {it}: {int(ok.sum())} pairs within {gate} m (need {config.min_inliers})")
-                P, Q, dsel = S[ok], tpts[idx[ok]], dist[ok]
-            R_new, t_new = _svd_step(P, Q, robust_weights(dsel, config) if robust else None)
-            dt = float(np.linalg.norm(t_new - t))
+                        f"ICP iteration {it}: {n_ok} pairs within {gate} m (need {config.min_inliers})")
+                P, Pc, pm, mv, Q = S[ok], None, None, moved[ok], tpts.take(idx[ok], axis=0)
+            R_new, t_new = _svd_step(P, Q, robust_weights(pair_distances(mv, Q), config) if robust else None, Pc, pm)
             if d == 2:
-                dr = abs(float(np.arctan2(R_new[1, 0], R_new[0, 0]) - np.arctan2(R[1, 0], R[0, 0])))
-                dr = min(dr, 2.0 * np.pi - dr)
+                th_new = math.atan2(R_new[1, 0], R_new[0, 0])
+                dt = math.hypot(*(t_new - t).tolist())
+                dr = abs(th_new - th)
+                dr = min(dr, 2.0 * math.pi - dr)
+                th = th_new
             else:
-                dr = float(np.linalg.norm(R_new - R)) / np.sqrt(2.0)  # = 2 sin(α/2) ≈ α, no √ε floor
+                dt = float(np.linalg.norm(t_new - t))
+                dr = float(np.linalg.norm(R_new - R)) / math.sqrt(2.0)  # = 2 sin(α/2) ≈ α, no √ε floor
             R, t = R_new, t_new
+            solved_from, moved = idx, None
             if dt < tol_t and dr < tol_r:
                 converged = True
                 break
     T = np.eye(4)
     T[:d, :d], T[:d, 3] = R, t
-    return evaluate_alignment(S, tgt, T, config.gates[-1], config, it, converged)
+    if moved is None:
+        moved = S @ R.T + t
+    gate = config.gates[-1]
+    return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)

@@ -17,7 +17,8 @@ from scipy.spatial import cKDTree
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se3_exp
-from .icp import IcpResult, IcpTarget, _as_target, _prepare, _workers, evaluate_alignment, robust_weights
+from .icp import IcpResult, IcpTarget, _as_target, _evaluate, _prepare, robust_weights
+from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher
 
 Array = NDArray[np.float64]
 
@@ -33,16 +34,29 @@ def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -
     scatter eigenvalues ``(N, 3)`` are returned too, for planarity tests."""
     k = min(k, tree.n)
     _, nn = tree.query(points, k=k, workers=workers if len(points) >= 20000 else 1)
-    nb = tree.data[nn]  # (N, k, d)
-    c = nb - nb.mean(axis=1, keepdims=True)
-    if nb.shape[2] == 2:
+    data = tree.data
+    # One contiguous (N, k) array per axis, centred on the neighbourhood mean: cheaper than the
+    # (N, k, d) gather and strided reductions for the few-point batches of 2D scans.
+    cols = [data[:, j].take(nn) for j in range(data.shape[1])]
+    for c in cols:
+        c -= (c.sum(axis=1) / k)[:, None]
+    if len(cols) == 2:
         # 2×2 scatter [[a, b], [b, c]]: the principal axis is at ½·atan2(2b, a − c); the normal is ⊥ to it.
-        a = np.einsum("nk,nk->n", c[:, :, 0], c[:, :, 0])
-        b = np.einsum("nk,nk->n", c[:, :, 0], c[:, :, 1])
-        cc = np.einsum("nk,nk->n", c[:, :, 1], c[:, :, 1])
+        cx, cy = cols
+        a = np.einsum("nk,nk->n", cx, cx)
+        b = np.einsum("nk,nk->n", cx, cy)
+        cc = np.einsum("nk,nk->n", cy, cy)
         phi = 0.5 * np.arctan2(2.0 * b, a - cc)
-        return np.column_stack([-np.sin(phi), np.cos(phi)])
-    C = np.einsum("nki,nkj->nij", c, c)
+        out = np.empty((len(phi), 2))
+        np.negative(np.sin(phi), out=out[:, 0])
+        np.cos(phi, out=out[:, 1])
+        return out
+    C = np.empty((len(nn), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            C[:, i, j] = np.einsum("nk,nk->n", cols[i], cols[j])
+            if j != i:
+                C[:, j, i] = C[:, i, j]
     ev, V = np.linalg.eigh(C)
     if return_eigenvalues:
         return V[:, :, 0], ev
@@ -60,25 +74,34 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     S, T = _prepare(source, tgt, init, config)
     d = tgt.dim
     normals = tgt.normals()
-    workers = _workers(len(S), config.workers)
+    n_tgt = len(tgt.points)
+    matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=len(S) >= INCREMENTAL_MIN_POINTS)
+    robust = config.robust != "none"
     it = 0
     converged = False
     R, t = T[:d, :d].copy(), T[:d, 3].copy()
+    moved = None  # the source moved by the current pose, when already computed
     for gate in config.gates:
         converged = False
         while it < config.max_iterations:
             it += 1
             moved = S @ R.T + t
-            dist, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=workers)
-            ok = np.flatnonzero(dist < np.inf)
-            if len(ok) < config.min_inliers:
-                raise DegenerateInputError(
-                    f"point-to-plane ICP iteration {it}: {len(ok)} pairs within {gate} m (need {config.min_inliers})")
-            m, n = moved[ok], normals[idx[ok]]
-            e = np.einsum("ij,ij->i", m - tgt.points[idx[ok]], n)
-            w = robust_weights(np.abs(e), config)
+            idx = matcher.match(moved, gate)
+            if idx[-1] < n_tgt and idx.max() < n_tgt:  # every point matched: no mask copies
+                m, i_in = moved, idx
+            else:
+                ok = np.flatnonzero(idx < n_tgt)
+                if len(ok) < config.min_inliers:
+                    raise DegenerateInputError(
+                        f"point-to-plane ICP iteration {it}: {len(ok)} pairs within {gate} m (need {config.min_inliers})")
+                m, i_in = moved.take(ok, axis=0), idx.take(ok)
+            n = normals.take(i_in, axis=0)
+            e = np.einsum("ij,ij->i", m - tgt.points.take(i_in, axis=0), n)
             J = _plane_rows(m, n)
-            Jw = J * w[:, None]
+            if robust:
+                Jw = J * robust_weights(np.abs(e), config)[:, None]
+            else:
+                Jw = J
             try:
                 xi = np.linalg.solve(J.T @ Jw, -(Jw.T @ e))
             except np.linalg.LinAlgError as exc:
@@ -88,12 +111,16 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
             else:
                 E = se3_exp(xi)
                 R, t = E[:3, :3] @ R, E[:3, :3] @ t + E[:3, 3]
+            moved = None
             if np.linalg.norm(xi[: d]) < config.tol_translation and np.linalg.norm(xi[d:]) < config.tol_rotation:
                 converged = True
                 break
     T = np.eye(4)
     T[:d, :d], T[:d, 3] = R, t
-    return evaluate_alignment(S, tgt, T, config.gates[-1], config, it, converged)
+    if moved is None:
+        moved = S @ R.T + t
+    gate = config.gates[-1]
+    return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
 
 
 def _plane_rows(m: Array, n: Array) -> Array:
