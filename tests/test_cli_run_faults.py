@@ -191,7 +191,10 @@ def test_ctrl_c_leaves_no_output_or_the_previous_one(tmp_path, previous):
             before[name] = text
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.Popen([sys.executable, "-m", "slam", "run", str(DATA / "intel.clf.bz2"), "--out", str(out),
-                             "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+                             "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+                            # As from a terminal: a child inherits an ignored SIGINT (and Python then keeps
+                            # ignoring it), so the test runner's own disposition must not leak in.
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         first = proc.stdout.readline()  # printed once the configuration is checked and the run starts
         assert first.startswith("log: "), first + proc.stderr.read()
