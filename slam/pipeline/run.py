@@ -73,8 +73,7 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
         kc = base.model_copy(update={"use_wheel_odometry": c.use_wheel_odometry, "compute_covariance": False,
                                      "max_range": c.max_range if planar else base.max_range})
         return KissOdometry(kc)
-    # Planar: 0.5 → 0.2 m gates from the wheel guess by default. (One 0.3 m gate at 5e-4 tolerance
-    # halves the iterations with the same short-range relation error on the first 3000 Intel scans.)
+    # Planar: one 0.3 m gate from the wheel guess by default (config.odometry.icp_gates).
     icp_cfg = IcpConfig(gates=c.icp_gates, max_iterations=30, tol_translation=c.icp_tolerance, tol_rotation=c.icp_tolerance,
                         robust="cauchy", robust_scale=0.05, workers=1) if planar else IcpConfig(
                         gates=(1.5, 0.6, 0.3), voxel_size=0.5, robust="cauchy", robust_scale=0.2)
