@@ -189,9 +189,10 @@ class LoopCloser:
         search of a window around the guess, when that scores clearly better than the guess
         (``correlative_min_gain``): on Intel an ICP from a guess a metre off along a corridor slides
         part-way and can still pass. The margin is there because in a featureless corridor the
-        score favours slides that overlap the small local map more (on the simulated corridor,
-        starting every ICP from the search cut recall at the default fitness from 0.41 to 0.09; with the
-        0.05 margin it is 0.32 at precision 1.0 instead of 0.95).
+        score favours slides that overlap the small local map more. The trade measured: on the
+        simulated 250-scan corridor, recall at the default fitness is 0.18 with the search (±2.5 m)
+        against 0.45 without, both at precision 1.0; on the whole Intel log the relation error is
+        0.029 m with it against 0.038 m without (and 0.057 m with a ±1.5 m window).
         """
         c = self.config
         self.stats.verified += 1
