@@ -68,7 +68,11 @@ class LikelihoodPyramid:
             g[:-s, :] = np.maximum(g[:-s, :], prev[s:, :])
             g[:, :-s] = np.maximum(g[:, :-s], g[:, s:])
             self.grids.append(g)
-        self.shape = shape
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Cells along x and y (every level has the same shape)."""
+        return self.grids[0].shape  # type: ignore[return-value]
 
     def cells(self, points: Array) -> NDArray[np.int64]:
         """Integer cell coordinates (…, 2) of points (…, 2) in the target frame."""

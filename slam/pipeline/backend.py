@@ -40,11 +40,7 @@ class PipelineBackend:
         self.solve_time_s = 0.0
         self.pruned_loops = 0
         self.smoother_restarts = 0
-        self._smoother = None
-        if config.kind == "gtsam":
-            from slam.backends.gtsam_backend import IncrementalSmoother
-
-            self._smoother = IncrementalSmoother(self.dim, relinearize_threshold=config.isam2_relinearize_threshold)
+        self._smoother = self._new_smoother() if config.kind == "gtsam" else None
 
     @property
     def poses(self) -> Array:
@@ -93,13 +89,16 @@ class PipelineBackend:
                 self._since_solve = 0
         self.solve_time_s += time.perf_counter() - t0
 
-    def _restart_smoother(self) -> None:
-        """A fresh iSAM2 holding the whole graph, initialised at its batch LM solution."""
+    def _new_smoother(self):  # type: ignore[no-untyped-def]
         from slam.backends.gtsam_backend import IncrementalSmoother
 
+        return IncrementalSmoother(self.dim, relinearize_threshold=self.config.isam2_relinearize_threshold)
+
+    def _restart_smoother(self) -> None:
+        """A fresh iSAM2 holding the whole graph, initialised at its batch LM solution."""
         self.smoother_restarts += 1
         P = self._solve_batch(self.poses)
-        self._smoother = IncrementalSmoother(self.dim, relinearize_threshold=self.config.isam2_relinearize_threshold)
+        self._smoother = self._new_smoother()
         for nid, T in zip(self.graph.node_ids, P):
             self._smoother.add_node(int(nid), T)
         for edge in self.graph.edges():

@@ -91,6 +91,11 @@ def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 
     return float(viol.sum() / inside.sum())
 
 
+def _moved(d: Array) -> bool:
+    """Whether any of the relative poses *d* (K, 4, 4) differs from identity by more than 5 mm or 0.1°."""
+    return bool(np.abs(d[:, :3, 3]).max() >= 5e-3 or np.abs(G.so3_log(d[:, :3, :3])).max() >= np.radians(0.1))
+
+
 class LoopCloser:
     """Finds and verifies loop closures for each new keyframe."""
 
@@ -154,11 +159,7 @@ class LoopCloser:
         inv_ref = G.inverse(poses[i] @ keyframes[i].base_T_sensor)
         rel = np.array([inv_ref @ poses[m] @ keyframes[m].base_T_sensor for m in range(lo, hi)])
         hit = self._cache.get(i)
-        if hit is not None and hit[0].shape == rel.shape:
-            d = G.relative(hit[0], rel)
-            if not (np.abs(d[:, :3, 3]).max() < 5e-3 and np.abs(G.so3_log(d[:, :3, :3])).max() < np.radians(0.1)):
-                hit = None
-        else:
+        if hit is not None and (hit[0].shape != rel.shape or _moved(G.relative(hit[0], rel))):
             hit = None
         if hit is None:
             pts = np.vstack([G.transform_points(T, keyframes[m].points) for T, m in zip(rel, range(lo, hi))])
