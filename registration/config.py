@@ -146,6 +146,13 @@ class IcpOdometryConfig(_Frozen):
     #: registration failure (e.g. a wrong basin in a featureless stretch) and the guess is kept instead
     max_guess_deviation_m: float | None = Field(None, gt=0.0)
     max_guess_deviation_rad: float | None = Field(None, gt=0.0)
+    #: wheel odometry that arrives in lumps (a few scans of zero motion, then the whole turn at once, as in
+    #: the MIT CSAIL log) is a wrong guess twice. When the wheel increment and the constant-velocity one
+    #: (the last ICP increment) differ by more than this (m, rad), ICP also runs from the latter and the
+    #: result with the clearly larger inlier fraction (by ``alternative_start_min_gain``) is kept.
+    alternative_start_m: float | None = Field(None, gt=0.0)
+    alternative_start_rad: float | None = Field(None, gt=0.0)
+    alternative_start_min_gain: float = Field(0.05, ge=0.0)
 
 
 def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:

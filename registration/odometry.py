@@ -196,7 +196,7 @@ class IcpOdometry(Odometry):
                 and self._prev_frame.odom is not None)
 
     def _too_far(self, guess: Array, pose: Array) -> bool:
-        """True when *pose* deviates from the wheel guess by more than the configured bounds."""
+        """True when *pose* deviates from its start (the wheel guess, or the constant-velocity one) by more than the configured bounds."""
         c = self.config
         d = geo.relative(guess, pose)
         return bool((c.max_guess_deviation_m is not None and np.linalg.norm(d[:3, 3]) > c.max_guess_deviation_m)
@@ -209,6 +209,27 @@ class IcpOdometry(Odometry):
         self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
         self._map_pose: Array | None = None
         self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
+        self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
+
+    def _alternative_start(self, frame: Frame, prediction: Array) -> Array | None:
+        """The constant-velocity increment, when the wheel prediction disagrees with it by more than
+        the configured bounds (lumpy wheel odometry), else None."""
+        c = self.config
+        if not self._wheel_guided(frame) or (c.alternative_start_m is None and c.alternative_start_rad is None):
+            return None
+        d = geo.relative(prediction, self._last_delta)
+        if ((c.alternative_start_m is not None and np.linalg.norm(d[:3, 3]) > c.alternative_start_m)
+                or (c.alternative_start_rad is not None and geo.rotation_angle(d[:3, :3]) > c.alternative_start_rad)):
+            return self._last_delta
+        return None
+
+    def _align(self, pts: Array, target: IcpTarget, start: Array):  # type: ignore[no-untyped-def]
+        """ICP result from *start*, or None when there are too few pairs."""
+        cfg = self.config
+        try:
+            return (icp_point_to_plane if cfg.point_to_plane else icp)(pts, target, start, cfg.icp)
+        except DegenerateInputError:
+            return None
 
     def update(self, frame: Frame) -> OdometryStep:
         cfg = self.config
@@ -217,20 +238,29 @@ class IcpOdometry(Odometry):
             self._map.append(voxel_downsample(pts, cfg.map_voxel_size))
             self._map_pose = np.eye(4)
             return self._emit(frame, np.eye(4), None, None)
-        guess = self._pose @ self._guess(frame, cfg.use_wheel_odometry)
+        prediction = self._guess(frame, cfg.use_wheel_odometry)
+        guess = self._pose @ prediction
         if self._target is None:
             self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
         target = self._target
+        res = self._align(pts, target, guess)
+        starts = [guess]
+        alt = self._alternative_start(frame, prediction)
+        if alt is not None:
+            self.alternative_starts += 1
+            starts.append(self._pose @ alt)
+            res_alt = self._align(pts, target, starts[1])
+            if res_alt is not None and (res is None or res_alt.fitness >= res.fitness + cfg.alternative_start_min_gain):
+                res, guess = res_alt, starts[1]
         cov = accepted = None
-        try:
-            res = (icp_point_to_plane if cfg.point_to_plane else icp)(pts, target, guess, cfg.icp)
-            pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma else None
-        except DegenerateInputError:
+        if res is None:
             pose = guess  # too few pairs (e.g. an empty scan): dead-reckon on the guess
+        else:
+            pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma else None
         if frame.is_planar:
             pose = _planar(pose)
-        if self._wheel_guided(frame) and self._too_far(guess, pose):
-            pose, cov, accepted = guess, None, False  # ICP left the wheel odometry's basin: keep the guess
+        if self._wheel_guided(frame) and all(self._too_far(s, pose) for s in starts):
+            pose, cov, accepted = guess, None, False  # ICP left the basin of every start: keep the chosen start
         moved = geo.relative(self._map_pose, pose)
         turned = geo.rotation_angle(moved[:3, :3])
         if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance

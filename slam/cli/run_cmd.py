@@ -93,6 +93,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         "keyframes": len(result.keyframes),
         "loop_closures": len(result.loops) - result.loop_stats.get("pruned", 0),
         "loop_stats": result.loop_stats,
+        "odometry_stats": result.odometry_stats,
         "dimension": 2 if result.planar else 3,
         "stage_times_s": result.stage_times_s,
         "map_scans_fused": result.map_builder.scans_fused if result.map_builder else 0,

@@ -33,6 +33,8 @@ class OdometryStageConfig(_Model):
     icp_map_step_m: float = Field(0.0, ge=0, description="our ICP odometry: a scan joins the local map after this much motion (0 = every scan) ...")
     icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
     icp_max_guess_deviation_rad: float | None = Field(0.35, gt=0, description="... or turned this much more; the wheel guess is kept")
+    icp_alternative_start_m: float | None = Field(0.05, gt=0, description="our ICP odometry: when the wheel and constant-velocity increments differ by more than this (or the angle below), ICP also starts from the latter and the clearly better fit wins (lumpy wheel odometry, MIT CSAIL)")
+    icp_alternative_start_rad: float | None = Field(0.05, gt=0)
     icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
@@ -54,6 +56,7 @@ class OdometryStageConfig(_Model):
     wheel_sigma_per_m: float = Field(0.1, gt=0)
     wheel_sigma_rad_per_m: float = Field(0.08, gt=0)
     wheel_sigma_rad_per_rad: float = Field(0.1, gt=0)
+    wheel_gate_probability: float | None = Field(0.999, gt=0, lt=1, description="a wheel edge whose disagreement with the registration edge exceeds this χ² quantile (Mahalanobis, both covariances) is left out: wheel odometry logged in lumps says 0° over a keyframe the robot turned 40° in (MIT CSAIL); None keeps every wheel edge")
 
 
 class LoopConfig(_Model):

@@ -96,6 +96,7 @@ class FrontEnd:
         self._cov_since_kf: Array | None = None
         self._dof: int | None = None
         self.wheel_edges: list[WheelEdge] = []
+        self.wheel_edges_dropped = 0
 
     def latest_wheel_edge(self, kf: Keyframe) -> WheelEdge | None:
         """The wheel-odometry edge ending at keyframe *kf*, if the log has wheel odometry."""
@@ -140,6 +141,20 @@ class FrontEnd:
         return self._diagonal((c.wheel_sigma_per_m * d + 1e-3) ** 2,
                               (c.wheel_sigma_rad_per_m * d + c.wheel_sigma_rad_per_rad * ang + 1e-3) ** 2)
 
+    def _consistent(self, edge: OdometryEdge, wheel: WheelEdge) -> bool:
+        """χ² test of the wheel edge against the registration edge over the same keyframe interval:
+        d = Log(edge⁻¹ · wheel), d ᵀ (Σ_edge + Σ_wheel)⁻¹ d ≤ the ``wheel_gate_probability`` quantile."""
+        p = self.config.odometry.wheel_gate_probability
+        if p is None:
+            return True
+        from scipy.stats import chi2
+
+        planar = self._dof == 3
+        rel = G.relative(edge.measurement, wheel.measurement)
+        d = G.se2_log(rel) if planar else G.se3_log(rel)
+        m2 = float(d @ np.linalg.solve(edge.covariance + wheel.covariance, d))
+        return m2 <= float(chi2.ppf(p, self._dof))
+
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
         """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
         step = self.odometry.update(frame)
@@ -174,7 +189,11 @@ class FrontEnd:
                 edge = OdometryEdge(prev.id, kf.id, rel, cov + self._floor(rel))
                 if c.wheel_edges and prev.frame.odom is not None and frame.odom is not None:
                     wrel = G.relative(prev.frame.odom, frame.odom)
-                    self.wheel_edges.append(WheelEdge(prev.id, kf.id, wrel, self._wheel_covariance(wrel)))
+                    wheel = WheelEdge(prev.id, kf.id, wrel, self._wheel_covariance(wrel))
+                    if self._consistent(edge, wheel):
+                        self.wheel_edges.append(wheel)
+                    else:
+                        self.wheel_edges_dropped += 1
             self.keyframes.append(kf)
             self._cov_since_kf = np.zeros((self._dof, self._dof))
             new_kf = kf

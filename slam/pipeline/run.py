@@ -59,6 +59,7 @@ class SlamResult:
     map_builder: MapBuilder | None = None
     skipped_scans: int = 0
     errors: list[str] = field(default_factory=list)
+    odometry_stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges left out
 
 
 def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
@@ -81,6 +82,8 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
                                          keyframe_distance=c.icp_map_step_m, keyframe_angle=c.icp_map_step_rad,
                                          max_guess_deviation_m=c.icp_max_guess_deviation_m,
                                          max_guess_deviation_rad=c.icp_max_guess_deviation_rad,
+                                         alternative_start_m=c.icp_alternative_start_m,
+                                         alternative_start_rad=c.icp_alternative_start_rad,
                                          map_voxel_size=0.03 if planar else 0.3,
                                          max_range=c.max_range if planar else 100.0, min_range=c.min_range,
                                          use_wheel_odometry=c.use_wheel_odometry))
@@ -147,5 +150,7 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
     t6 = time.perf_counter()
     occ = mapper.finish(kfs, kf_poses)
     times["mapping_s"] += time.perf_counter() - t6
+    odo_stats = {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
+                 "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped}
     return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, graph.backend, graph.loops, stats, times, occ,
-                      mapper)
+                      mapper, odometry_stats=odo_stats)
