@@ -64,7 +64,7 @@ class LoopConfig(_Model):
 
     enabled: bool = True
     search_radius_m: float = Field(2.0, gt=0, description="base radius around the current estimate")
-    radius_sigma_factor: float = Field(3.0, ge=0, description="radius grows by this × σ accumulated since the last closure")
+    radius_sigma_factor: float = Field(3.0, ge=0, description="a keyframe's radius grows by this × the σ of its position relative to the new keyframe, along the graph")
     max_radius_m: float = Field(8.0, gt=0)
     exclude_recent_keyframes: int = Field(15, ge=1, description="keyframes this recent are not loop candidates")
     max_candidates: int = Field(4, ge=1, description="spatial candidates verified per keyframe (nearest first)")

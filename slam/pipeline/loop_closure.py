@@ -2,7 +2,8 @@
 
 Candidates (Olson, "Recognizing places using spectrally clustered local matches", RAS 2009, §2 gives
 the usual recipe): keyframes whose current estimate lies within a radius of the new keyframe that
-grows with the uncertainty accumulated since the last accepted closure, recent keyframes excluded;
+grows with their position uncertainty relative to it along the graph (:mod:`slam.pipeline.uncertainty`),
+recent keyframes excluded;
 plus, for 2D scans, places whose Scan Context descriptor matches (:mod:`slam.loops.descriptor`),
 which finds revisits the drifted estimate cannot reach.
 
@@ -13,7 +14,7 @@ heading (place recognition) — in 2D refined first by a correlative branch-and-
 (:mod:`registration.correlative`) when that scores clearly better. A closure is accepted when (1) the residual χ² test passes
 (Res ≤ factor·(n − dof)·σ²), (2) the fitness (inlier fraction) and RMSE are good enough and (3) it
 is consistent: for spatial candidates the Mahalanobis distance between the ICP result and the
-estimate, under the accumulated uncertainty, is small; for descriptor candidates a second ICP from
+estimate, under their relative uncertainty, is small; for descriptor candidates a second ICP from
 a perturbed start must reach the same pose (a unique basin).
 """
 
@@ -35,6 +36,7 @@ from slam.loops.descriptor import DescriptorIndex, PolarDescriptorConfig, polar_
 
 from .config import LoopConfig
 from .frontend import Keyframe
+from .uncertainty import NodeUncertainty
 
 Array = NDArray[np.float64]
 
@@ -115,14 +117,21 @@ class LoopCloser:
         self._align = icp if config.icp_method == "point" else icp_point_to_plane
 
     # ------------------------------------------------------------------ candidates
-    def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float) -> list[int]:
-        """Keyframe ids within *radius* (m) of *kf*'s estimate, nearest first, older than the exclusion window."""
+    def search_radii(self, uncertainty: NodeUncertainty) -> Array:
+        """Per keyframe, the search radius (m): the base radius plus ``radius_sigma_factor`` × the σ
+        of its position relative to the new keyframe, at most ``max_radius_m``."""
+        c = self.config
+        return np.minimum(c.max_radius_m, c.search_radius_m + c.radius_sigma_factor * np.sqrt(uncertainty.position_var))
+
+    def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float | Array) -> list[int]:
+        """Keyframe ids within *radius* (m; one, or one per keyframe) of *kf*'s estimate, nearest
+        first, older than the exclusion window."""
         c = self.config
         last = kf.id - c.exclude_recent_keyframes
         if last <= 0:
             return []
         d = np.linalg.norm(positions[:last, :2] - positions[kf.id, :2], axis=1)
-        near = np.flatnonzero(d < radius)
+        near = np.flatnonzero(d < (radius[:last] if np.ndim(radius) else radius))
         near = near[np.argsort(d[near])]
         chosen: list[int] = []
         for j in near:  # spread the candidates: skip keyframes whose local maps would overlap a chosen one
@@ -274,21 +283,20 @@ class LoopCloser:
         floor = np.diag([c.covariance_floor_m**2] * (2 if self.planar else 3) + [c.covariance_floor_rad**2] * (1 if self.planar else 3))
         return LoopClosure(i, j, meas, cov + floor, float(res.fitness), float(res.rmse), source), ""
 
-    def detect(self, keyframes: list[Keyframe], poses: Array, j: int, cov_since_closure: Array) -> list[LoopClosure]:
-        """All accepted closures between the new keyframe *j* and older keyframes, given estimates *poses*."""
+    def detect(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty) -> list[LoopClosure]:
+        """All accepted closures between the new keyframe *j* and older keyframes, given estimates
+        *poses* and each keyframe's *uncertainty* relative to *j* (:mod:`slam.pipeline.uncertainty`)."""
         c = self.config
         if not c.enabled:
             return []
         kj = keyframes[j]
-        sig = float(np.sqrt(max(np.trace(cov_since_closure[: (2 if self.planar else 3), : (2 if self.planar else 3)]), 0.0)))
-        radius = min(c.max_radius_m, c.search_radius_m + c.radius_sigma_factor * sig)
         out: list[LoopClosure] = []
         tried: set[int] = set()
-        for i in self.spatial_candidates(kj, poses[:, :3, 3], radius):
+        for i in self.spatial_candidates(kj, poses[:, :3, 3], self.search_radii(uncertainty)):
             self.stats.candidates += 1
             tried.add(i)
             guess = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor
-            lc = self.verify(keyframes, poses, i, j, guess, cov_since_closure, "spatial")
+            lc = self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial")
             if lc is not None:
                 out.append(lc)
         if not out:

@@ -12,12 +12,12 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as G
 
 from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig
 from .frontend import Keyframe, OdometryEdge, WheelEdge
 from .loop_closure import LoopCloser, LoopClosure
+from .uncertainty import RelativeUncertainty
 
 Array = NDArray[np.float64]
 
@@ -29,9 +29,9 @@ class OnlineGraph:
         self.closer = LoopCloser(loops, planar)
         self.backend = PipelineBackend(backend, loops, planar)
         self.loops: list[LoopClosure] = []
-        dof = 3 if planar else 6
-        # Covariance accumulated along the odometry since the last accepted closure: it widens the search.
-        self._cov_since_closure = np.zeros((dof, dof))
+        self.planar = planar
+        # Every edge's covariance: each keyframe's uncertainty relative to the new one widens its search radius.
+        self.uncertainty = RelativeUncertainty(planar)
         self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
 
     def add(self, keyframes: list[Keyframe], edge: OdometryEdge | None, wheel: WheelEdge | None) -> list[LoopClosure]:
@@ -45,17 +45,19 @@ class OnlineGraph:
         else:
             be.add_keyframe(kf.id, be.poses[edge.i] @ edge.measurement)
             be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance)
+            self.uncertainty.add_edge(edge.i, edge.j, edge.covariance)
             if wheel is not None:
                 be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
-            self._cov_since_closure = G.compound_covariance(self._cov_since_closure, edge.measurement, edge.covariance)
+                self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance)
         t1 = time.perf_counter()
-        new = self.closer.detect(keyframes, be.poses, kf.id, self._cov_since_closure)
+        poses = be.poses
+        unc = self.uncertainty.from_node(kf.id, poses[:, : (2 if self.planar else 3), 3])
+        new = self.closer.detect(keyframes, poses, kf.id, unc)
         t2 = time.perf_counter()
         for lc in new:
             be.add_loop(lc)
+            self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
         self.loops.extend(new)
-        if new:
-            self._cov_since_closure = np.zeros_like(self._cov_since_closure)
         be.update(loop_added=bool(new))
         self.times["loop_closure_s"] += t2 - t1
         self.times["backend_s"] += (t1 - t0) + (time.perf_counter() - t2)

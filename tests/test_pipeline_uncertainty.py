@@ -1,0 +1,87 @@
+"""Keyframe uncertainty relative to the newest keyframe, along the most certain path of the graph."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from registration import geometry as G
+from slam.pipeline.uncertainty import RelativeUncertainty
+
+
+def _chain(n: int, var_t: float, var_r: float, planar: bool = True) -> tuple[RelativeUncertainty, np.ndarray]:
+    """Keyframes 0 … n one metre apart along x, consecutive edges of the given traces."""
+    u = RelativeUncertainty(planar)
+    d = 2 if planar else 3
+    r = 1 if planar else 3
+    cov = np.diag([var_t / d] * d + [var_r / r] * r)
+    for k in range(n):
+        u.add_edge(k, k + 1, cov)
+    pos = np.zeros((n + 1, d))
+    pos[:, 0] = np.arange(n + 1)
+    return u, pos
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_translation_variance_adds_up_along_a_chain(planar):
+    u, pos = _chain(30, 4e-4, 0.0, planar)
+    unc = u.from_node(30, pos)
+    np.testing.assert_allclose(unc.position_var, 4e-4 * (30 - np.arange(31)), rtol=1e-6, atol=1e-10)
+    assert unc.position_var[30] == 0.0 and unc.rotation_var[30] == 0.0
+
+
+def test_heading_noise_matches_monte_carlo_of_a_noisy_chain():
+    """First-order lever-arm propagation against sampling: the position of the chain's far end."""
+    n, st, sr = 20, 0.02, 0.01
+    u, pos = _chain(n, 2 * st**2, sr**2)
+    predicted = u.from_node(n, pos).position_var[0]
+    rng = np.random.default_rng(5)
+    step = G.xytheta_to_matrix(1.0, 0.0, 0.0)
+    ends = []
+    for _ in range(4000):
+        T = np.eye(4)
+        for _k in range(n):
+            T = T @ step @ G.xytheta_to_matrix(*rng.normal(0.0, [st, st, sr]))
+        ends.append(T[:2, 3])
+    sampled = float(np.trace(np.cov(np.array(ends).T)))
+    # The edge-centre lever arm is half a step longer than the exact one: slightly conservative.
+    assert 0.95 * sampled < predicted < 1.25 * sampled
+    # Rotation variances add along the chain.
+    assert u.from_node(n, pos).rotation_var[0] == pytest.approx(n * sr**2)
+
+
+def test_parallel_edges_use_the_most_certain_one():
+    u = RelativeUncertainty(True)
+    u.add_edge(0, 1, np.diag([1e-2, 1e-2, 1e-4]))  # e.g. the wheel edge
+    u.add_edge(0, 1, np.diag([1e-4, 1e-4, 1e-6]))  # the registration edge
+    unc = u.from_node(1, np.array([[0.0, 0.0], [0.5, 0.0]]))
+    assert unc.position_var[0] == pytest.approx(2e-4 + 1e-6 * 0.25**2, rel=1e-6)
+
+
+def test_a_loop_closure_shortens_the_path_and_the_rotation_follows_it():
+    u, pos = _chain(100, 1e-3, 1e-5)
+    pos[:, 0] = 10.0 * np.cos(np.linspace(0, 2 * np.pi, 101))  # a loop: keyframe 100 is back at 0
+    pos = np.column_stack([pos[:, 0], 10.0 * np.sin(np.linspace(0, 2 * np.pi, 101))])
+    before = u.from_node(100, pos)
+    u.add_edge(0, 100, np.diag([2e-4, 2e-4, 3e-6]))
+    after = u.from_node(100, pos)
+    assert before.position_var[0] > 0.1  # a hundred metres of odometry
+    assert after.position_var[0] == pytest.approx(4e-4, rel=1e-3)
+    assert after.rotation_var[0] == pytest.approx(3e-6)
+    # Keyframe 3 is now reached through the closure and three chain edges.
+    assert after.rotation_var[3] == pytest.approx(3e-6 + 3e-5)
+    assert after.position_var[3] < before.position_var[3]
+
+
+def test_keyframes_beyond_the_limit_or_unconnected_carry_the_limit():
+    u, pos = _chain(10, 1.0, 0.0)
+    u_lim = RelativeUncertainty(True, limit_m2=4.5)
+    for k in range(10):
+        u_lim.add_edge(k, k + 1, np.diag([0.5, 0.5, 0.0]))
+    unc = u_lim.from_node(10, pos)
+    np.testing.assert_allclose(unc.position_var[6:], [4.0, 3.0, 2.0, 1.0, 0.0])
+    assert np.all(unc.position_var[:6] == 4.5)
+    # An unconnected keyframe (no edge yet) also gets the limit.
+    alone = RelativeUncertainty(True, limit_m2=9.0).from_node(2, np.zeros((3, 2)))
+    np.testing.assert_array_equal(alone.position_var, [9.0, 9.0, 0.0])
+    assert alone.covariance(0, planar=True).shape == (3, 3)
