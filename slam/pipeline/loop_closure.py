@@ -211,10 +211,8 @@ class LoopCloser:
             target, pyramid = self._target(keyframes, poses, i)
             start = guess_sensor
             if pyramid is not None:
-                spatial = source == "spatial"
-                found = correlative.match(keyframes[j].points, pyramid, guess_sensor,
-                                          c.correlative_window_m if spatial else c.descriptor_window_m,
-                                          np.radians(c.correlative_window_deg if spatial else c.descriptor_window_deg))
+                win_m, win_rad = self._window(source, relative_cov)
+                found = correlative.match(keyframes[j].points, pyramid, guess_sensor, win_m, win_rad)
                 if found.score < c.min_correlative_score:
                     self.stats.rejected_correlative += 1
                     return None
@@ -230,6 +228,20 @@ class LoopCloser:
             return None
         self.stats.accepted += 1
         return closure
+
+    def _window(self, source: str, relative_cov: Array | None) -> tuple[float, float]:
+        """Correlative search window (± m, ± rad): descriptor candidates a fixed one around the place;
+        spatial ones the configured window, widened to ``correlative_window_sigmas`` × their relative σ
+        (a revisit after a long loop can be metres off), within the configured maximum."""
+        c = self.config
+        if source != "spatial":
+            return c.descriptor_window_m, float(np.radians(c.descriptor_window_deg))
+        win_m, win_rad = c.correlative_window_m, float(np.radians(c.correlative_window_deg))
+        if relative_cov is not None:
+            sd = np.sqrt(np.diag(relative_cov))
+            win_m = float(np.clip(c.correlative_window_sigmas * sd[:2].max(), win_m, c.correlative_max_window_m))
+            win_rad = float(np.clip(c.correlative_window_sigmas * sd[2], win_rad, np.radians(c.correlative_max_window_deg)))
+        return win_m, win_rad
 
     def _attempt(self, keyframes: list[Keyframe], i: int, j: int, target: IcpTarget, start: Array, guess_sensor: Array,
                  relative_cov: Array | None, source: str) -> tuple[LoopClosure | None, str]:
