@@ -47,20 +47,30 @@ class IcpTarget:
         self.tree = cKDTree(self.points)
         self.normal_neighbors = normal_neighbors
         self.workers = workers
-        self._normals: Array | None = None
+        # Normals are computed on demand, point by point, and kept: an alignment needs them only at
+        # the target points it matches (a scan against a ten-scan local map: about a tenth).
+        self._normals = np.empty_like(self.points)
+        self._have = np.zeros(len(self.points), dtype=bool)
+        self._have_all = False
 
     def normals(self, index: NDArray[np.intp] | None = None) -> Array:
         """Unit PCA normals (smallest-eigenvalue eigenvector of the k-neighbour scatter) of the
-        target points *index* (all when None). All-point normals are cached."""
+        target points *index* (all when None), computed once per point."""
         from .point_to_plane import estimate_normals
 
         if index is None:
-            if self._normals is None:
-                self._normals = estimate_normals(self.points, self.tree, self.normal_neighbors, self.workers)
+            if not self._have_all:
+                missing = np.flatnonzero(~self._have)
+                self._normals[missing] = estimate_normals(self.points[missing], self.tree, self.normal_neighbors, self.workers)
+                self._have[:] = self._have_all = True
             return self._normals
-        if self._normals is not None:
-            return self._normals[index]
-        return estimate_normals(self.points[index], self.tree, self.normal_neighbors, self.workers)
+        if not self._have_all:
+            missing = index[~self._have[index]]
+            if len(missing):
+                missing = np.unique(missing)
+                self._normals[missing] = estimate_normals(self.points[missing], self.tree, self.normal_neighbors, self.workers)
+                self._have[missing] = True
+        return self._normals.take(index, axis=0)
 
 
 @dataclass(frozen=True)

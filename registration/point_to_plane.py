@@ -73,7 +73,6 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     tgt = _as_target(target, config)
     S, T = _prepare(source, tgt, init, config)
     d = tgt.dim
-    normals = tgt.normals()
     n_tgt = len(tgt.points)
     matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=len(S) >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
@@ -95,7 +94,7 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
                     raise DegenerateInputError(
                         f"point-to-plane ICP iteration {it}: {len(ok)} pairs within {gate} m (need {config.min_inliers})")
                 m, i_in = moved.take(ok, axis=0), idx.take(ok)
-            n = normals.take(i_in, axis=0)
+            n = tgt.normals(i_in)
             e = np.einsum("ij,ij->i", m - tgt.points.take(i_in, axis=0), n)
             J = _plane_rows(m, n)
             if robust:
