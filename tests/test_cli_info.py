@@ -14,7 +14,7 @@ import pytest
 
 from slam.cli import main
 from tests.conftest import DATA, REPO, shared_path
-from tests.test_logs_carmen import flaser, odom_line, robotlaser, write_log
+from tests.test_logs_carmen import flaser, odom_line, robotlaser
 
 
 def run_info(args: list[str], capsys) -> tuple[int, str, str]:

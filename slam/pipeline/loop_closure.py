@@ -112,20 +112,25 @@ class LoopCloser:
                               robust="cauchy", robust_scale=config.icp_sigma * 2.0, sigma=config.icp_sigma,
                               chi2_factor=config.chi2_factor, covariance_model="plane", workers=1)
         self._icp_wide = self._icp.model_copy(update={"gates": (2.0,) + tuple(config.icp_gates)})
-        self._cache: dict[int, tuple[Array, IcpTarget]] = {}
-        self._pyramids: dict[int, correlative.LikelihoodPyramid] = {}
+        self._cache: dict[tuple[int, int], tuple[Array, IcpTarget]] = {}
+        self._pyramids: dict[tuple[int, int], correlative.LikelihoodPyramid] = {}
         self._align = icp if config.icp_method == "point" else icp_point_to_plane
 
     # ------------------------------------------------------------------ candidates
     def search_radii(self, uncertainty: NodeUncertainty) -> Array:
         """Per keyframe, the search radius (m): the base radius plus ``radius_sigma_factor`` × the σ
-        of its position relative to the new keyframe, at most ``max_radius_m``."""
+        of its position relative to the new keyframe, at most ``max_radius_m`` (``far_max_radius_m``
+        for graph-far keyframes)."""
         c = self.config
-        return np.minimum(c.max_radius_m, c.search_radius_m + c.radius_sigma_factor * np.sqrt(uncertainty.position_var))
+        sd = np.sqrt(uncertainty.position_var)
+        cap = np.where(sd > c.far_sigma_m, max(c.far_max_radius_m, c.max_radius_m), c.max_radius_m)
+        return np.minimum(cap, c.search_radius_m + c.radius_sigma_factor * sd)
 
-    def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float | Array) -> list[int]:
-        """Keyframe ids within *radius* (m; one, or one per keyframe) of *kf*'s estimate, nearest
-        first, older than the exclusion window."""
+    def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float | Array,
+                           far: NDArray[np.bool_] | None = None) -> list[int]:
+        """Keyframe ids within *radius* (m; one, or one per keyframe) of *kf*'s estimate, older than
+        the exclusion window: the ``max_candidates`` nearest, then (with the mask *far* of graph-far
+        keyframes) the ``far_candidates`` nearest graph-far ones not chosen yet."""
         c = self.config
         last = kf.id - c.exclude_recent_keyframes
         if last <= 0:
@@ -134,11 +139,17 @@ class LoopCloser:
         near = np.flatnonzero(d < (radius[:last] if np.ndim(radius) else radius))
         near = near[np.argsort(d[near])]
         chosen: list[int] = []
-        for j in near:  # spread the candidates: skip keyframes whose local maps would overlap a chosen one
-            if all(abs(int(j) - k) > c.submap_keyframes for k in chosen):
-                chosen.append(int(j))
-            if len(chosen) >= c.max_candidates:
-                break
+        pools = [(near, c.max_candidates)]
+        if far is not None and c.far_candidates > 0:
+            pools.append((near[far[near]], c.far_candidates))
+        for pool, quota in pools:
+            added = 0
+            for j in pool:  # spread the candidates: skip keyframes whose local maps would overlap a chosen one
+                if added >= quota:
+                    break
+                if all(abs(int(j) - k) > c.submap_keyframes for k in chosen):
+                    chosen.append(int(j))
+                    added += 1
         return chosen
 
     def descriptor_candidates(self, kf: Keyframe) -> list[tuple[int, float]]:
@@ -155,41 +166,53 @@ class LoopCloser:
             self.index.add(kf.id, kf.points)
 
     # ------------------------------------------------------------------ verification
-    def _target(self, keyframes: list[Keyframe], poses: Array, i: int) -> tuple[IcpTarget, correlative.LikelihoodPyramid | None]:
+    def _target(self, keyframes: list[Keyframe], poses: Array, i: int, far: bool = False
+                ) -> tuple[IcpTarget, correlative.LikelihoodPyramid | None]:
         """ICP target: points of keyframes i±k in keyframe i's sensor frame, from the current estimates,
-        and (2D, when enabled) the likelihood pyramid of the same points for the correlative search.
+        and (2D, when enabled) the likelihood pyramid of the same points for the correlative search;
+        k = ``submap_keyframes``, or ``far_submap_keyframes`` for a graph-far candidate (*far*).
 
-        Cached per keyframe; rebuilt when a neighbour's pose relative to keyframe i changed by more
+        Cached per (keyframe, k); rebuilt when a neighbour's pose relative to keyframe i changed by more
         than 5 mm or 0.1° (e.g. after a loop closure), so revisits of one place reuse the k-d tree,
         normals and pyramid. Pyramids (~1–3 MB each) are kept for the 64 most recently used places.
         """
-        k = self.config.submap_keyframes
+        c = self.config
+        k = c.far_submap_keyframes if far else c.submap_keyframes
+        key = (i, k)
         lo, hi = max(0, i - k), min(len(poses), i + k + 1)
         inv_ref = G.inverse(poses[i] @ keyframes[i].base_T_sensor)
         rel = np.array([inv_ref @ poses[m] @ keyframes[m].base_T_sensor for m in range(lo, hi)])
-        hit = self._cache.get(i)
+        hit = self._cache.get(key)
         if hit is not None and (hit[0].shape != rel.shape or _moved(G.relative(hit[0], rel))):
             hit = None
         if hit is None:
             pts = np.vstack([G.transform_points(T, keyframes[m].points) for T, m in zip(rel, range(lo, hi))])
             hit = (rel, IcpTarget(pts, normal_neighbors=8, workers=1))
-            self._cache[i] = hit
-            self._pyramids.pop(i, None)
+            self._cache[key] = hit
+            self._pyramids.pop(key, None)
             if len(self._cache) > 512:  # bounded memory: drop the oldest entries
-                for key in list(self._cache)[:128]:
-                    del self._cache[key]
-        c = self.config
+                for old in list(self._cache)[:128]:
+                    del self._cache[old]
         if not (self.planar and c.correlative):
             return hit[1], None
-        pyramid = self._pyramids.pop(i, None)
+        pyramid = self._pyramids.pop(key, None)
         if pyramid is None:
             res = c.correlative_resolution_m
+            # Levels for the usual window: a wider (graph-far) search only starts from more top-level
+            # blocks, while deeper levels would pad every grid by 2^levels cells (51 m for ±15 m).
             w = int(np.ceil(max(c.correlative_window_m, c.descriptor_window_m) / res))
             pyramid = correlative.LikelihoodPyramid(hit[1].points, res, res, levels=int(np.ceil(np.log2(2 * w + 1))))
-        self._pyramids[i] = pyramid  # most recently used last
+        self._pyramids[key] = pyramid  # most recently used last
         if len(self._pyramids) > 64:
             del self._pyramids[next(iter(self._pyramids))]
         return hit[1], pyramid
+
+    def _is_far(self, relative_cov: Array | None) -> bool:
+        """Graph-far: the candidate's position σ relative to the new keyframe exceeds ``far_sigma_m``."""
+        if relative_cov is None:
+            return False
+        d = 2 if self.planar else 3
+        return bool(np.sqrt(np.trace(relative_cov[:d, :d])) > self.config.far_sigma_m)
 
     def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
                relative_cov: Array | None, source: str) -> LoopClosure | None:
@@ -208,7 +231,7 @@ class LoopCloser:
         c = self.config
         self.stats.verified += 1
         try:
-            target, pyramid = self._target(keyframes, poses, i)
+            target, pyramid = self._target(keyframes, poses, i, far=source == "spatial" and self._is_far(relative_cov))
             start = guess_sensor
             if pyramid is not None:
                 win_m, win_rad = self._window(source, relative_cov)
@@ -232,14 +255,15 @@ class LoopCloser:
     def _window(self, source: str, relative_cov: Array | None) -> tuple[float, float]:
         """Correlative search window (± m, ± rad): descriptor candidates a fixed one around the place;
         spatial ones the configured window, widened to ``correlative_window_sigmas`` × their relative σ
-        (a revisit after a long loop can be metres off), within the configured maximum."""
+        per axis (a revisit after a long loop can be metres off), up to ``far_max_radius_m`` and
+        ``correlative_max_window_deg``."""
         c = self.config
         if source != "spatial":
             return c.descriptor_window_m, float(np.radians(c.descriptor_window_deg))
         win_m, win_rad = c.correlative_window_m, float(np.radians(c.correlative_window_deg))
         if relative_cov is not None:
             sd = np.sqrt(np.diag(relative_cov))
-            win_m = float(np.clip(c.correlative_window_sigmas * sd[:2].max(), win_m, c.correlative_max_window_m))
+            win_m = float(np.clip(c.correlative_window_sigmas * sd[:2].max(), win_m, max(win_m, c.far_max_radius_m)))
             win_rad = float(np.clip(c.correlative_window_sigmas * sd[2], win_rad, np.radians(c.correlative_max_window_deg)))
         return win_m, win_rad
 
@@ -304,7 +328,8 @@ class LoopCloser:
         kj = keyframes[j]
         out: list[LoopClosure] = []
         tried: set[int] = set()
-        for i in self.spatial_candidates(kj, poses[:, :3, 3], self.search_radii(uncertainty)):
+        far = np.sqrt(uncertainty.position_var) > c.far_sigma_m
+        for i in self.spatial_candidates(kj, poses[:, :3, 3], self.search_radii(uncertainty), far):
             self.stats.candidates += 1
             tried.add(i)
             guess = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor

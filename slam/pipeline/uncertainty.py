@@ -56,7 +56,7 @@ class RelativeUncertainty:
         limit_m2: position variance beyond which the search stops (keyframes farther get this value).
     """
 
-    def __init__(self, planar: bool, limit_m2: float = 16.0) -> None:
+    def __init__(self, planar: bool, limit_m2: float = 100.0) -> None:
         self.planar = planar
         self.limit_m2 = float(limit_m2)
         self._i: list[int] = []

@@ -1,0 +1,63 @@
+"""Loop candidates and their search windows sized by each keyframe's uncertainty relative to the new one."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from slam.pipeline.config import LoopConfig
+from slam.pipeline.loop_closure import LoopCloser
+from slam.pipeline.uncertainty import NodeUncertainty
+
+
+def _scene():
+    """Keyframe 99 at the origin; keyframes 50–70 (a recent pass) 0.3–1.3 m away and well linked;
+    keyframes 5–10 (the first pass) 9–10 m away and linked only through a long chain."""
+    K = 100
+    pos = np.full((K, 3), 50.0)
+    pos[99] = pos[50:71] = pos[5:11] = 0.0
+    pos[50:71, 0] = np.linspace(0.3, 1.3, 21)
+    pos[5:11, 1] = np.linspace(9.0, 10.0, 6)
+    var = np.full(K, 1e-4)
+    var[:40] = 9.0  # σ = 3 m
+    return pos, NodeUncertainty(var, np.full(K, 1e-4))
+
+
+def test_graph_far_keyframes_get_their_own_candidate_slot_and_a_wider_radius():
+    cfg = LoopConfig()
+    closer = LoopCloser(cfg, planar=True)
+    pos, unc = _scene()
+    radii = closer.search_radii(unc)
+    assert radii[60] == cfg.search_radius_m + cfg.radius_sigma_factor * 0.01
+    assert radii[5] == min(cfg.far_max_radius_m, cfg.search_radius_m + cfg.radius_sigma_factor * 3.0)
+    far = np.sqrt(unc.position_var) > cfg.far_sigma_m
+    kf = SimpleNamespace(id=99)
+    chosen = closer.spatial_candidates(kf, pos, radii, far)
+    near_part, far_part = chosen[: cfg.max_candidates], chosen[cfg.max_candidates:]
+    assert len(near_part) == cfg.max_candidates and all(50 <= i <= 70 for i in near_part)
+    assert far_part == [5]  # the nearest of the first pass
+    # Without the far pool the first pass is crowded out by the recent one.
+    assert all(50 <= i <= 70 for i in closer.spatial_candidates(kf, pos, radii))
+    # With the old fixed cap (max_radius_m) the first pass would not even be in range.
+    assert 5 not in closer.spatial_candidates(kf, pos, np.minimum(radii, cfg.max_radius_m), far)
+
+
+def test_correlative_window_follows_the_relative_uncertainty_within_its_caps():
+    cfg = LoopConfig()
+    closer = LoopCloser(cfg, planar=True)
+    deg = np.radians
+    # Well-linked: the configured window.
+    w, r = closer._window("spatial", np.diag([1e-4, 1e-4, 1e-6]))
+    assert w == cfg.correlative_window_m and r == deg(cfg.correlative_window_deg)
+    # Uncertain in heading (7°), not in position: 3σ in heading only.
+    w, r = closer._window("spatial", np.diag([0.1, 0.1, deg(7.0) ** 2]))
+    assert w == cfg.correlative_window_m and np.isclose(r, deg(21.0))
+    # Graph-far (σ 1.2 m per axis): 3σ in translation.
+    w, r = closer._window("spatial", np.diag([1.44, 1.44, 1e-6]))
+    assert np.isclose(w, 3.6) and r == deg(cfg.correlative_window_deg)
+    # Graph-far and very uncertain: capped at the far radius and the angular maximum.
+    w, r = closer._window("spatial", np.diag([50.0, 50.0, 1.0]))
+    assert w == cfg.far_max_radius_m and r == deg(cfg.correlative_max_window_deg)
+    # Descriptor candidates keep their own window.
+    assert closer._window("descriptor", None) == (cfg.descriptor_window_m, deg(cfg.descriptor_window_deg))
