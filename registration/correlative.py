@@ -96,12 +96,15 @@ def angular_step(points: Array, resolution: float) -> float:
 
 
 def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
-          max_candidates: int = 200_000, greedy_descents: int = 4) -> CorrelativeResult:
+          max_candidates: int = 200_000, greedy_descents: int = 4, min_score: float = 0.0) -> CorrelativeResult:
     """Best ``target_T_scan`` within ±*window_m* (x and y) and ±*window_rad* of the planar 4×4 *guess*.
 
     Exact over the discretised window: breadth-first branch and bound; the lower bound is the best
     score reached by greedy descents from the most promising blocks of each level, and blocks whose
     max-pooled bound cannot beat it are dropped. *max_candidates* bounds the memory of one gather.
+    *min_score* starts the bound there (Cartographer's ``min_score``, Hess et al. 2016 §V-C): blocks
+    that cannot reach it are never expanded; when no pose in the window scores above it (nor the
+    guess), the result is the guess with its score, which is then below *min_score*.
     """
     pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
     if len(pts) < 3:
@@ -140,7 +143,7 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
             o = o_c[np.arange(len(o)), pick]
         return sc[np.arange(len(o)), pick], o
 
-    best, best_rot, best_off = guess_score, k, np.zeros(2, np.int64)
+    best, best_rot, best_off = max(guess_score, min_score), k, np.zeros(2, np.int64)
     bounds = pyramid.score_candidates(top, cells, rot, off)
     chunk = max(1, max_candidates // 4)
     # Breadth-first branch and bound; at each level the most promising blocks are first descended
@@ -169,5 +172,7 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
             i = int(np.argmax(bounds))
             best, best_rot, best_off = float(bounds[i]), int(rot[i]), off[i]
 
+    if best_rot == k and not best_off.any():  # nothing beat the guess (or min_score)
+        return CorrelativeResult(np.asarray(guess, dtype=np.float64).copy(), guess_score, guess_score)
     T = G.xytheta_to_matrix(x0 + best_off[0] * res, y0 + best_off[1] * res, thetas[best_rot])
     return CorrelativeResult(T, best, guess_score)

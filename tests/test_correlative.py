@@ -79,6 +79,26 @@ def test_branch_and_bound_finds_the_brute_force_maximum(seed, levels):
     assert found.guess_score <= found.score + 1e-12
 
 
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), min_score=st.floats(0.0, 1.0))
+def test_min_score_keeps_the_maximum_above_it_and_returns_the_guess_below_it(seed, min_score):
+    """Starting the bound at min_score changes nothing when the window's maximum exceeds it; otherwise
+    the result is the guess itself, with its (lower) score."""
+    rng = np.random.default_rng(seed)
+    walls = room(rng, 500)
+    truth = G.xytheta_to_matrix(rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), rng.uniform(-0.1, 0.1))
+    scan = G.transform_points(G.inverse(truth), walls[rng.choice(len(walls), 60, replace=False)])
+    scan += rng.normal(0, 0.02, scan.shape)
+    pyr = C.LikelihoodPyramid(walls, 0.1, 0.1, levels=3)
+    free = C.match(scan, pyr, np.eye(4), 0.5, np.radians(6))
+    bounded = C.match(scan, pyr, np.eye(4), 0.5, np.radians(6), min_score=min_score)
+    if free.score > min_score + 1e-9:
+        assert bounded.score == pytest.approx(free.score, abs=1e-12)
+    elif free.score < min_score - 1e-9:
+        assert bounded.score == bounded.guess_score == pytest.approx(free.guess_score, abs=1e-12)
+        assert np.array_equal(bounded.transform, np.eye(4))
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_large_offsets_land_within_one_cell_and_one_angular_step(seed):
     rng = np.random.default_rng(seed)

@@ -72,6 +72,7 @@ class LoopConfig(_Model):
     far_candidates: int = Field(1, ge=0, description="... and this many of them (nearest first) are verified besides the max_candidates nearest, so the nearby recent passes cannot crowd out the revisit of an old one ...")
     far_max_radius_m: float = Field(15.0, gt=0, description="... searched within base + factor·σ up to this radius (m), the correlative window up to the same ...")
     far_submap_keyframes: int = Field(25, ge=0, description="... against a larger local map (±k keyframes): the Freiburg hospital's return after 80 min, 10 m off, scores fitness 0.29–0.41 against ±3 keyframes and 0.58–0.66 against ±25")
+    far_min_correlative_score: float = Field(0.5, ge=0, le=1, description="... and rejected before ICP unless a pose in the window scores this (mean likelihood, 0–1); the bound prunes the ±15 m search from ~0.5 s to ~0.05 s. The hospital's true return scores 0.74; its first 3000 scans' far candidates 0.30–0.57")
     use_descriptor: bool = True
     descriptor_candidates: int = Field(2, ge=0)
     descriptor_max_distance: float = Field(0.35, gt=0, description="Scan Context distance below which a place is a candidate; whole Intel log 0.25 / 0.35 / 0.5 / 0.65: 0.0565 / 0.0293 / 0.0295 / 0.0288 m (0.35: 0.6 % of places > 5 m apart pass, 12 % of those < 1 m)")
@@ -87,6 +88,7 @@ class LoopConfig(_Model):
     correlative_window_deg: float = Field(10.0, gt=0, description="... and ± this in heading")
     correlative_window_sigmas: float = Field(3.0, ge=0, description="spatial candidates: the window widens to ± this × the candidate's σ relative to the new keyframe (position and heading), up to far_max_radius_m ...")
     correlative_max_window_deg: float = Field(30.0, gt=0, description="... and ± this in heading")
+    correlative_max_range_m: float = Field(30.0, gt=0, description="scan points farther than this (m, sensor frame) are left out of the correlative search (ICP uses all): its angular step moves the farthest point by one cell (Hess et al. 2016, Eq. 7), so the Freiburg hospital's 80 m returns made it 0.07° and a ±15 m / ±30° search took ~1 s")
     descriptor_window_m: float = Field(1.5, gt=0, description="descriptor candidates: ± this around the place (the descriptor gives no offset)")
     descriptor_window_deg: float = Field(8.0, gt=0, description="... and ± this around the descriptor's heading")
     correlative_min_gain: float = Field(0.05, ge=0, description="ICP starts from the correlative pose only when its score (mean likelihood of the scan's points, 0–1) beats the guess's by this much; Intel's first 3000 scans: 0 / 0.05 / 0.15 gave 0.0171 / 0.0174 / 0.0589 m")

@@ -231,12 +231,16 @@ class LoopCloser:
         c = self.config
         self.stats.verified += 1
         try:
-            target, pyramid = self._target(keyframes, poses, i, far=source == "spatial" and self._is_far(relative_cov))
+            far = source == "spatial" and self._is_far(relative_cov)
+            target, pyramid = self._target(keyframes, poses, i, far=far)
             start = guess_sensor
             if pyramid is not None:
                 win_m, win_rad = self._window(source, relative_cov)
-                found = correlative.match(keyframes[j].points, pyramid, guess_sensor, win_m, win_rad)
-                if found.score < c.min_correlative_score:
+                pts = keyframes[j].points
+                pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= c.correlative_max_range_m]
+                min_score = c.far_min_correlative_score if far else c.min_correlative_score
+                found = correlative.match(pts, pyramid, guess_sensor, win_m, win_rad, min_score=min_score)
+                if found.score < min_score:
                     self.stats.rejected_correlative += 1
                     return None
                 if found.score >= found.guess_score + c.correlative_min_gain:
