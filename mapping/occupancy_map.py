@@ -112,6 +112,9 @@ def load_npz(path: str | Path) -> OccupancyMap:
         return OccupancyMap(geom, prob, mean, var, np.asarray(z["observed"], bool), method)
 
 
+MAX_PNG_CELLS = 2400  # cells along the longer side of a map's PNG before it is subsampled
+
+
 def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float], label: str, cmap: str,
               vmin: float | None, vmax: float | None, mask: NDArray[np.bool_] | None) -> None:
     import matplotlib
@@ -119,8 +122,14 @@ def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = np.ma.masked_array(img, mask=None if mask is None else ~mask)
+    # The figure is ~840 px wide: plot every k-th cell of a large map (what nearest-neighbour
+    # display shows anyway) so matplotlib's full-size float copies stay small (a 420 m × 215 m
+    # map at 0.05 m cost ~3 GB of peak memory).
     h, w = img.shape
+    k = max(1, int(np.ceil(max(h, w) / MAX_PNG_CELLS)))
+    img = img[::k, ::k]
+    mask = None if mask is None else mask[::k, ::k]
+    data = np.ma.masked_array(img, mask=None if mask is None else ~mask)
     fig, ax = plt.subplots(figsize=(7, 7 * h / max(w, 1) + 0.5), dpi=120)
     cm = plt.get_cmap(cmap).with_extremes(bad="#b0b0b0")
     im = ax.imshow(data, origin="lower", extent=extent, cmap=cm, vmin=vmin, vmax=vmax, interpolation="nearest")
