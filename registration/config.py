@@ -147,9 +147,10 @@ class IcpOdometryConfig(_Frozen):
     max_guess_deviation_m: float | None = Field(None, gt=0.0)
     max_guess_deviation_rad: float | None = Field(None, gt=0.0)
     #: wheel odometry that arrives in lumps (a few scans of zero motion, then the whole turn at once, as in
-    #: the MIT CSAIL log) is a wrong guess twice. When the wheel increment and the constant-velocity one
-    #: (the last ICP increment) differ by more than this (m, rad), ICP also runs from the latter and the
-    #: result with the clearly larger inlier fraction (by ``alternative_start_min_gain``) is kept.
+    #: the MIT CSAIL log) is a wrong guess twice. When the wheel increment differs by more than this
+    #: (m, rad) from the constant-velocity one (the last ICP increment) and from the previous wheel
+    #: increment, ICP also runs from the former; a result that stayed near its own start beats one
+    #: that left it, else the clearly larger inlier fraction (by ``alternative_start_min_gain``) wins.
     alternative_start_m: float | None = Field(None, gt=0.0)
     alternative_start_rad: float | None = Field(None, gt=0.0)
     alternative_start_min_gain: float = Field(0.05, ge=0.0)

@@ -33,7 +33,7 @@ class OdometryStageConfig(_Model):
     icp_map_step_m: float = Field(0.0, ge=0, description="our ICP odometry: a scan joins the local map after this much motion (0 = every scan) ...")
     icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
     icp_max_guess_deviation_rad: float | None = Field(0.35, gt=0, description="... or turned this much more; the wheel guess is kept")
-    icp_alternative_start_m: float | None = Field(0.05, gt=0, description="our ICP odometry: when the wheel and constant-velocity increments differ by more than this (or the angle below), ICP also starts from the latter and the clearly better fit wins (lumpy wheel odometry, MIT CSAIL)")
+    icp_alternative_start_m: float | None = Field(0.05, gt=0, description="our ICP odometry: when the wheel increment differs by more than this (or the angle below) both from the last estimated increment and from the previous wheel increment (lumpy wheel odometry, MIT CSAIL), ICP also starts from the last increment and the clearly better fit wins")
     icp_alternative_start_rad: float | None = Field(0.05, gt=0)
     icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
