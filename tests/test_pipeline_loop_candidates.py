@@ -61,3 +61,51 @@ def test_correlative_window_follows_the_relative_uncertainty_within_its_caps():
     assert w == cfg.far_max_radius_m and r == deg(cfg.correlative_max_window_deg)
     # Descriptor candidates keep their own window.
     assert closer._window("descriptor", None) == (cfg.descriptor_window_m, deg(cfg.descriptor_window_deg))
+
+
+def _return_after_drift(rng, drift):
+    """True poses of old keyframes 0–4 and new ones 30–34 (a revisit of the same corridor stretch); the
+    estimate has the new ones moved by *drift* (the loop's accumulated error), and closures measured
+    from the truth with 1 cm / 0.1° noise."""
+    from registration import geometry as G
+    from slam.pipeline.loop_closure import LoopClosure
+
+    truth = np.array([G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(40)])
+    truth[30:35] = [G.xytheta_to_matrix(0.5 * (k - 30) + 0.2, 0.3, 0.05) for k in range(30, 35)]
+    est = truth.copy()
+    est[30:35] = drift @ truth[30:35]
+    closures = []
+    for j, i in zip(range(30, 35), range(0, 5)):
+        noise = G.xytheta_to_matrix(*rng.normal(0, [0.01, 0.01, np.radians(0.1)]))
+        closures.append(LoopClosure(i, j, G.relative(truth[i], truth[j]) @ noise, np.eye(3) * 1e-4, 0.9, 0.02, "spatial"))
+    return est, closures
+
+
+def test_closures_that_agree_with_each_other_but_not_the_drifted_estimate_are_accepted_together():
+    """After a 2 m / 12° drift every closure of the return fails the test against the estimate; as a
+    group they agree (their cycles through the estimate's local relative poses close), so they are
+    accepted once three keyframes have one, and not before."""
+    from registration import geometry as G
+
+    rng = np.random.default_rng(4)
+    est, closures = _return_after_drift(rng, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
+    closer = LoopCloser(LoopConfig(), planar=True)
+    closer._pending = closures[:2]
+    assert closer._consistent_group(est, 31) == []
+    closer._pending = closures[:3]
+    group = closer._consistent_group(est, 32)
+    assert sorted(lc.j for lc in group) == [30, 31, 32]
+    assert closer._pending == [] and closer.stats.accepted_as_group == 3
+
+
+def test_closures_that_disagree_with_each_other_are_not_accepted():
+    """Three closures each off by its own wrong corridor slide (0.5 m apart) form no group."""
+    from registration import geometry as G
+
+    rng = np.random.default_rng(5)
+    est, closures = _return_after_drift(rng, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
+    for k, lc in enumerate(closures[:3]):
+        lc.measurement = lc.measurement @ G.xytheta_to_matrix(0.5 * k, 0.0, 0.0)
+    closer = LoopCloser(LoopConfig(), planar=True)
+    closer._pending = closures[:3]
+    assert closer._consistent_group(est, 32) == []

@@ -98,6 +98,10 @@ class LoopConfig(_Model):
     min_fitness: float = Field(0.6, gt=0, le=1.0)
     max_rmse: float = Field(0.08, gt=0)
     max_mahalanobis: float = Field(15.0, gt=0, description="consistency of a spatial closure with the estimate (σ units, after the radius)")
+    group_min_size: int = Field(3, ge=0, description="closures that fail only the consistency test are accepted together when this many, from as many different keyframes within group_window_keyframes, agree with each other (0: never)")
+    group_window_keyframes: int = Field(10, ge=1)
+    group_tolerance_m: float = Field(0.15, gt=0, description="pairwise agreement of two such closures: their cycle through the estimate's local relative poses within this (m) ...")
+    group_tolerance_deg: float = Field(2.0, gt=0, description="... and this (°)")
     max_free_space_violation: float = Field(0.15, ge=0, le=1, description="2D: largest fraction of either scan's points inside the other's observed free space")
     descriptor_min_fitness: float = Field(0.8, gt=0, le=1.0)
     robust_kernel: Literal["none", "huber", "cauchy", "gm"] = "cauchy"

@@ -66,6 +66,7 @@ class LoopStats:
     rejected_free_space: int = 0
     rejected_correlative: int = 0
     correlative_starts: int = 0  # verifications whose ICP started from the correlative search's pose
+    accepted_as_group: int = 0  # closures first rejected as inconsistent with the estimate, then accepted as a consistent group
 
 
 def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 0.1, rel_margin: float = 0.02) -> float:
@@ -106,6 +107,7 @@ class LoopCloser:
         self.planar = planar
         self.dof = 3 if planar else 6
         self.stats = LoopStats()
+        self._pending: list[LoopClosure] = []  # passed every test but consistency with the estimate
         self.index = DescriptorIndex(PolarDescriptorConfig()) if planar and config.use_descriptor else None
         self._icp = IcpConfig(gates=config.icp_gates, max_iterations=config.icp_max_iterations,
                               tol_translation=config.icp_tolerance, tol_rotation=config.icp_tolerance,
@@ -305,6 +307,7 @@ class LoopCloser:
             S = relative_cov + res.covariance
             m2 = float(innov @ np.linalg.solve(S, innov))
             if m2 > c.max_mahalanobis**2 * self.dof:
+                self._pending.append(self._closure(keyframes, i, j, T, res, source))
                 return None, "rejected_consistency"
         if source == "descriptor":
             # Unique basin: restart from a perturbed start and require the same answer.
@@ -316,12 +319,50 @@ class LoopCloser:
             d = G.relative(res.transform, res2.transform)
             if np.linalg.norm(d[:3, 3]) > 0.05 or np.linalg.norm(G.so3_log(d[:3, :3])) > np.radians(1.0):
                 return None, "rejected_consistency"
-        Bi, Bj = keyframes[i].base_T_sensor, kj.base_T_sensor
+        return self._closure(keyframes, i, j, T, res, source), ""
+
+    def _closure(self, keyframes: list[Keyframe], i: int, j: int, T: Array, res, source: str) -> LoopClosure:  # type: ignore[no-untyped-def]
+        """The closure ``i_base_T_j_base`` from the sensor-frame alignment *T* and its ICP covariance (plus the floor)."""
+        c = self.config
+        Bi, Bj = keyframes[i].base_T_sensor, keyframes[j].base_T_sensor
         meas = Bi @ T @ G.inverse(Bj)  # i_base_T_j_base
         A = G.adjoint(Bj, planar=self.planar)
         cov = A @ res.covariance @ A.T
         floor = np.diag([c.covariance_floor_m**2] * (2 if self.planar else 3) + [c.covariance_floor_rad**2] * (1 if self.planar else 3))
-        return LoopClosure(i, j, meas, cov + floor, float(res.fitness), float(res.rmse), source), ""
+        return LoopClosure(i, j, meas, cov + floor, float(res.fitness), float(res.rmse), source)
+
+    def _consistent_group(self, poses: Array, j: int) -> list[LoopClosure]:
+        """Closures that failed only the consistency test, accepted together when ``group_min_size`` of
+        them, from as many different recent keyframes, agree with each other though not with the
+        estimate (the estimate drifted, not the matches: MIT CSAIL's return to its start).
+
+        Two closures a = (i₁, j₁, Z₁), b = (i₂, j₂, Z₂) agree when the cycle
+        Z₁⁻¹ (X_i₁⁻¹ X_i₂) Z₂ (X_j₂⁻¹ X_j₁) is within ``group_tolerance_m`` / ``_deg`` of the identity: it
+        uses the estimate only between neighbouring old keyframes and between neighbouring new ones,
+        which a long loop's drift leaves intact (the pairwise test of Olson's single-cluster graph
+        partitioning, ICRA 2009, and of RRR, Latif et al. 2013, in its simplest form)."""
+        c = self.config
+        self._pending = [lc for lc in self._pending if lc.j > j - c.group_window_keyframes]
+        if c.group_min_size <= 0 or len({lc.j for lc in self._pending}) < c.group_min_size:
+            return []
+        P = self._pending
+        n = len(P)
+        ok = np.eye(n, dtype=bool)
+        for a in range(n):
+            for b in range(a + 1, n):
+                A, B = P[a], P[b]
+                E = (G.inverse(A.measurement) @ G.relative(poses[A.i], poses[B.i]) @ B.measurement
+                     @ G.relative(poses[B.j], poses[A.j]))
+                ok[a, b] = ok[b, a] = (np.linalg.norm(E[:3, 3]) <= c.group_tolerance_m
+                                       and G.rotation_angle(E[:3, :3]) <= np.radians(c.group_tolerance_deg))
+        best = int(np.argmax(ok.sum(axis=1)))
+        group = [k for k in np.flatnonzero(ok[best]) if ok[np.ix_(np.flatnonzero(ok[best]), [k])].all()]
+        if len({P[k].j for k in group}) < c.group_min_size:
+            return []
+        accepted = [P[k] for k in group]
+        self._pending = []
+        self.stats.accepted_as_group += len(accepted)
+        return accepted
 
     def detect(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty) -> list[LoopClosure]:
         """All accepted closures between the new keyframe *j* and older keyframes, given estimates
@@ -340,6 +381,7 @@ class LoopCloser:
             lc = self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial")
             if lc is not None:
                 out.append(lc)
+        out.extend(self._consistent_group(poses, j))
         if not out:
             for i, yaw in self.descriptor_candidates(kj):
                 if any(abs(i - t) <= c.submap_keyframes for t in tried):
