@@ -355,8 +355,13 @@ class LoopCloser:
                      @ G.relative(poses[B.j], poses[A.j]))
                 ok[a, b] = ok[b, a] = (np.linalg.norm(E[:3, 3]) <= c.group_tolerance_m
                                        and G.rotation_angle(E[:3, :3]) <= np.radians(c.group_tolerance_deg))
-        best = int(np.argmax(ok.sum(axis=1)))
-        group = [k for k in np.flatnonzero(ok[best]) if ok[np.ix_(np.flatnonzero(ok[best]), [k])].all()]
+        # Greedy clique: from the closure with most agreements, add the others (most agreeing first)
+        # that agree with every member so far.
+        degree = ok.sum(axis=1)
+        group = [int(np.argmax(degree))]
+        for k in sorted(np.flatnonzero(ok[group[0]]), key=lambda k: -degree[k]):
+            if k != group[0] and ok[k, group].all():
+                group.append(int(k))
         if len({P[k].j for k in group}) < c.group_min_size:
             return []
         accepted = [P[k] for k in group]
