@@ -99,3 +99,28 @@ def test_failed_run_leaves_no_output(tmp_path, sim_log, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.yaml" in err[0]
     assert not out.exists()
+
+
+def test_slam_run_on_the_kitti_sample_writes_the_3d_outputs(tmp_path, capsys):
+    """The 10-scan KITTI sample runs end to end: one pose per scan, steps of a car at ~30 km/h
+    (0.6–1.0 m per 0.1 s frame, as both registrations measure it), a 2D map of the height band with
+    occupied and free cells, and a voxel point map in PLY."""
+    from tests.conftest import shared_path
+
+    seq = shared_path("kitti_odometry_00_sample", "sequences", "00")
+    out = tmp_path / "kitti"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(seq), "--out", str(out), "--quiet"])
+    assert exc.value.code in (0, None)
+    tr = read_tum(out / "trajectory.tum")
+    assert len(tr) == 10
+    steps = np.linalg.norm(np.diff(tr.poses[:, :3, 3], axis=0), axis=1)
+    assert np.all((steps > 0.6) & (steps < 1.0)), steps
+    s = json.loads((out / "summary.json").read_text())
+    assert s["dimension"] == 3 and s["scans"] == 10
+    m = np.load(out / "map.npz")
+    p, seen = m["probability"], m["observed"]
+    assert (p[seen] > 0.65).sum() > 100 and (p[seen] < 0.35).sum() > 1000
+    header = (out / "points.ply").read_bytes()[:400].decode("ascii", "replace")
+    n_vertices = int(header.split("element vertex ")[1].split()[0])
+    assert n_vertices > 1000
