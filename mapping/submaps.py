@@ -121,14 +121,9 @@ class SubmapFuser:
 
     def _add(self, sm: Submap, sign: float) -> None:
         """Add (+1) or subtract (−1) the placed contribution of *sm* to the global grid."""
-        g, local = sm.placed
-        fi, fp = self.info.reshape(-1), self.prec.reshape(-1)
-        if sign > 0:
-            fi[g] += sm.mapper.grid.info.reshape(-1)[local]
-            fp[g] += sm.mapper.grid.prec.reshape(-1)[local]
-        else:
-            fi[g] -= sm.mapper.grid.info.reshape(-1)[local]
-            fp[g] -= sm.mapper.grid.prec.reshape(-1)[local]
+        g, info, prec = self.placed_values(sm.key)
+        self.info.reshape(-1)[g] += sign * info  # placed cells are unique: fancy += is exact
+        self.prec.reshape(-1)[g] += sign * prec
 
     def _unplace(self, sm: Submap) -> None:
         if sm.placed is not None:
