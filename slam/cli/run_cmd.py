@@ -109,7 +109,10 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         summary["stage_times_s"]["outputs_s"] = time.perf_counter() - t1
         summary["wall_time_s"] = time.perf_counter() - t0
         summary["scans_per_second"] = n / wall_run if wall_run > 0 else 0.0
-        summary["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        # Both processes' peaks, summed: an upper bound on the memory the run held at any one time.
+        summary["peak_memory_mb"] = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+                                     + result.front_end_peak_memory_mb)
+        summary["front_end_peak_memory_mb"] = result.front_end_peak_memory_mb
         full = json.loads((folder / "summary.json").read_text())
         full.update(summary)
         with open(folder / "summary.json", "w") as fh:

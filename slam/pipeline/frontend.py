@@ -87,11 +87,15 @@ class ScanTrack:
 class FrontEnd:
     """Feeds frames to an odometry source and emits keyframes and odometry edges."""
 
-    def __init__(self, config: SlamConfig, odometry: Odometry) -> None:
+    def __init__(self, config: SlamConfig, odometry: Odometry, keep_keyframes: bool = True) -> None:
+        """*keep_keyframes* False keeps only the latest keyframe (a front-end process that hands each over)."""
         self.config = config
         self.odometry = odometry
         self.selector = KeyframeSelector(config.keyframes)
-        self.keyframes: list[Keyframe] = []
+        self.keyframes: list[Keyframe] = []  # every keyframe, with keep_keyframes
+        self._keep = keep_keyframes
+        self._last: Keyframe | None = None
+        self._count = 0
         self.track = ScanTrack()
         self._cov_since_kf: Array | None = None
         self._dof: int | None = None
@@ -178,10 +182,10 @@ class FrontEnd:
             c = self.config.odometry
             pts = pts[(r >= c.min_range) & (r <= c.max_range)]
             vs = 0.02 if frame.is_planar else 0.3
-            kf = Keyframe(len(self.keyframes), len(self.track.stamps) - 1, frame.stamp, pose,
+            kf = Keyframe(self._count, len(self.track.stamps) - 1, frame.stamp, pose,
                           np.asarray(frame.base_T_sensor, dtype=float), voxel_downsample(pts, vs), frame)
-            if self.keyframes:
-                prev = self.keyframes[-1]
+            if self._last is not None:
+                prev = self._last
                 rel = G.relative(prev.odom_pose, pose)
                 cov = self._edge_covariance(prev, kf, rel)
                 if cov is None:
@@ -194,8 +198,11 @@ class FrontEnd:
                         self.wheel_edges.append(wheel)
                     else:
                         self.wheel_edges_dropped += 1
-            self.keyframes.append(kf)
+            if self._keep:
+                self.keyframes.append(kf)
+            self._last = kf
+            self._count += 1
             self._cov_since_kf = np.zeros((self._dof, self._dof))
             new_kf = kf
-        self.track.keyframe.append(len(self.keyframes) - 1)
+        self.track.keyframe.append(self._count - 1)
         return new_kf, edge, step

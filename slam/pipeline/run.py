@@ -1,6 +1,7 @@
 """``run_slam``: the whole pipeline on one log, streaming its frames once.
 
-1. odometry per scan (KISS-ICP or our scan-to-map ICP; wheel odometry as the initial guess);
+1. odometry per scan (KISS-ICP or our scan-to-map ICP; wheel odometry as the initial guess), in its
+   own process by default, running ahead of the rest;
 2. keyframes and odometry edges with the compounded registration covariance;
 3. loop closures for every keyframe, verified by ICP (χ², fitness, consistency);
 4. iSAM2 after every keyframe (or periodic chordal batch solves), a final batch solve;
@@ -21,7 +22,7 @@ from registration.odometry import Odometry
 
 from .backend import PipelineBackend
 from .config import SlamConfig
-from .frontend import FrontEnd, Keyframe
+from .frontend import Keyframe
 from .loop_closure import LoopClosure
 from .mapping_stage import MapBuilder
 from .online_graph import OnlineGraph
@@ -60,6 +61,7 @@ class SlamResult:
     skipped_scans: int = 0
     errors: list[str] = field(default_factory=list)
     odometry_stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges left out
+    front_end_peak_memory_mb: float = 0.0  # of the front-end process (0 when it ran inline)
 
 
 def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
@@ -92,8 +94,11 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
 def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
     """Run the pipeline over an iterable of :class:`Frame` (time order). BLAS runs single-threaded.
 
-    A frame generator is closed on the way out, also on an error or Ctrl-C, so a reader's
-    background thread stops here rather than at interpreter shutdown."""
+    With ``config.front_end_process`` (the default) odometry runs in a child process
+    (:mod:`slam.pipeline.front_process`); a script calling this then needs the usual
+    ``if __name__ == "__main__":`` guard of multiprocessing. A frame generator is closed on the way
+    out, also on an error or Ctrl-C, so a reader's background thread stops here rather than at
+    interpreter shutdown."""
     from slam.blas import single_blas_thread
 
     try:
@@ -106,43 +111,57 @@ def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | 
 
 
 def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None) -> SlamResult:
+    from .front_process import start_front_end
+
     t_start = time.perf_counter()
     times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
-    front: FrontEnd | None = None
-    graph: OnlineGraph | None = None
-    planar = True
+    front = None
+    keyframes: list[Keyframe] = []
+
+    def add_keyframe(kf: Keyframe, edge, wheel) -> None:  # type: ignore[no-untyped-def]
+        keyframes.append(kf)
+        new = graph.add(keyframes, edge, wheel)
+        t5 = time.perf_counter()
+        mapper.add_keyframe(kf, graph.backend.poses[kf.id])
+        if new:
+            mapper.refresh(graph.backend.poses)
+        times["mapping_s"] += time.perf_counter() - t5
+
     n = 0
-    for frame in frames:
-        if config.max_scans is not None and n >= config.max_scans:
-            break
+    try:
+        for frame in frames:
+            if config.max_scans is not None and n >= config.max_scans:
+                break
+            if front is None:
+                planar = frame.is_planar
+                front = start_front_end(config, planar)
+                graph = OnlineGraph(config.loops, config.backend, planar)
+                mapper = MapBuilder(config.mapping, planar)
+            front.submit(frame)
+            n += 1
+            for item in front.ready():
+                add_keyframe(*item)
+            if progress is not None:
+                progress(Progress(n, len(keyframes), len(graph.loops), time.perf_counter() - t_start))
         if front is None:
-            planar = frame.is_planar
-            front = FrontEnd(config, make_odometry(config, planar))
-            graph = OnlineGraph(config.loops, config.backend, planar)
-            mapper = MapBuilder(config.mapping, planar)
-        t0 = time.perf_counter()
-        kf, edge, _ = front.process(frame)
-        times["odometry_s"] += time.perf_counter() - t0
-        n += 1
-        if kf is not None:
-            new = graph.add(front.keyframes, edge, front.latest_wheel_edge(kf))
-            t5 = time.perf_counter()
-            mapper.add_keyframe(kf, graph.backend.poses[kf.id])
-            if new:
-                mapper.refresh(graph.backend.poses)
-            times["mapping_s"] += time.perf_counter() - t5
-        if progress is not None:
-            progress(Progress(n, len(front.keyframes), len(graph.loops), time.perf_counter() - t_start))
-    if front is None or not front.keyframes:
+            raise GpslamError("the log yielded no scans")
+        rest, summary = front.finish()
+    finally:
+        if front is not None:
+            front.close()
+    for item in rest:
+        add_keyframe(*item)
+    if not keyframes:
         raise GpslamError("the log yielded no scans")
+    times["odometry_s"] = summary.odometry_s
     t4 = time.perf_counter()
     kf_poses = graph.finish()
     times.update(graph.times)
     times["final_solve_s"] = time.perf_counter() - t4
-    tr = front.track
+    tr = summary.track
     stamps = np.asarray(tr.stamps)
     odom = np.asarray(tr.odom_poses)
-    kfs = front.keyframes
+    kfs = keyframes
     poses = interpolate_scan_poses(stamps, odom, np.asarray(tr.keyframe), np.array([k.stamp for k in kfs]),
                                    np.array([k.odom_pose for k in kfs]), kf_poses, planar)
     wheel = np.asarray(tr.wheel_poses) if all(w is not None for w in tr.wheel_poses) else None
@@ -150,7 +169,5 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
     t6 = time.perf_counter()
     occ = mapper.finish(kfs, kf_poses)
     times["mapping_s"] += time.perf_counter() - t6
-    odo_stats = {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
-                 "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped}
     return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, graph.backend, graph.loops, stats, times, occ,
-                      mapper, odometry_stats=odo_stats)
+                      mapper, odometry_stats=summary.stats, front_end_peak_memory_mb=summary.peak_memory_mb)
