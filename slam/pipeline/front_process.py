@@ -26,7 +26,7 @@ from registration.frame import Frame
 from .config import SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, ScanTrack, WheelEdge
 
-Ready = tuple[Keyframe, "OdometryEdge | None", "WheelEdge | None"]
+Ready = tuple[Keyframe, OdometryEdge | None, WheelEdge | None]
 
 
 @dataclass
