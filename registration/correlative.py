@@ -96,7 +96,8 @@ def angular_step(points: Array, resolution: float) -> float:
 
 
 def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
-          max_candidates: int = 200_000, greedy_descents: int = 4, min_score: float = 0.0) -> CorrelativeResult:
+          max_candidates: int = 200_000, greedy_descents: int = 4, min_score: float = 0.0,
+          min_gain: float = 0.0) -> CorrelativeResult:
     """Best ``target_T_scan`` within ±*window_m* (x and y) and ±*window_rad* of the planar 4×4 *guess*.
 
     Exact over the discretised window: breadth-first branch and bound; the lower bound is the best
@@ -105,6 +106,10 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
     *min_score* starts the bound there (Cartographer's ``min_score``, Hess et al. 2016 §V-C): blocks
     that cannot reach it are never expanded; when no pose in the window scores above it (nor the
     guess), the result is the guess with its score, which is then below *min_score*.
+    *min_gain*: a pose counts only when it beats the guess's score by this much (a caller that starts
+    from the search's pose only then need not see smaller gains). When the guess reaches *min_score*
+    the bound starts at guess score + *min_gain*, so the result is the window's maximum when that is
+    at least this high and the guess otherwise; the rest is pruned without being expanded.
     """
     pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
     if len(pts) < 3:
@@ -143,7 +148,10 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
             o = o_c[np.arange(len(o)), pick]
         return sc[np.arange(len(o)), pick], o
 
-    best, best_rot, best_off = max(guess_score, min_score), k, np.zeros(2, np.int64)
+    floor = max(guess_score, min_score)
+    if min_gain > 0 and guess_score >= min_score:
+        floor = guess_score + min_gain - 1e-12  # a maximum of exactly guess + min_gain still counts
+    best, best_rot, best_off = floor, k, np.zeros(2, np.int64)
     bounds = pyramid.score_candidates(top, cells, rot, off)
     chunk = max(1, max_candidates // 4)
     # Breadth-first branch and bound; at each level the most promising blocks are first descended

@@ -99,6 +99,29 @@ def test_min_score_keeps_the_maximum_above_it_and_returns_the_guess_below_it(see
         assert np.array_equal(bounded.transform, np.eye(4))
 
 
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), fraction=st.floats(0.0, 2.0))
+def test_min_gain_keeps_the_maximum_when_it_beats_the_guess_by_that_much(seed, fraction):
+    """The bound starting at guess score + min_gain: the window's maximum when it is that much better than
+    the guess, otherwise the guess itself — exactly the decision a caller makes on the unbounded search."""
+    rng = np.random.default_rng(seed)
+    walls = room(rng, 500)
+    truth = G.xytheta_to_matrix(rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), rng.uniform(-0.1, 0.1))
+    scan = G.transform_points(G.inverse(truth), walls[rng.choice(len(walls), 60, replace=False)])
+    scan += rng.normal(0, 0.02, scan.shape)
+    pyr = C.LikelihoodPyramid(walls, 0.1, 0.1, levels=3)
+    free = C.match(scan, pyr, np.eye(4), 0.5, np.radians(6))
+    min_gain = fraction * (free.score - free.guess_score)  # around the actual gain: both outcomes occur
+    bounded = C.match(scan, pyr, np.eye(4), 0.5, np.radians(6), min_gain=min_gain)
+    assert bounded.guess_score == free.guess_score
+    if free.score >= free.guess_score + min_gain + 1e-9:
+        assert bounded.score == pytest.approx(free.score, abs=1e-12)
+        assert bounded.score >= bounded.guess_score + min_gain
+    elif free.score < free.guess_score + min_gain - 1e-9:
+        assert bounded.score == bounded.guess_score
+        assert np.array_equal(bounded.transform, np.eye(4))
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_large_offsets_land_within_one_cell_and_one_angular_step(seed):
     rng = np.random.default_rng(seed)
