@@ -109,3 +109,37 @@ def test_closures_that_disagree_with_each_other_are_not_accepted():
     closer = LoopCloser(LoopConfig(), planar=True)
     closer._pending = closures[:3]
     assert closer._consistent_group(est, 32) == []
+
+
+def test_information_gain_is_the_gaussian_mutual_information_at_the_covariance_floor():
+    """½ log det(I + Σ_rel Σ_floor⁻¹) with Σ_rel split evenly over the axes: the mutual information of a
+    closure with noise Σ_floor about a relative pose with prior Σ_rel; 0 for a pose already known exactly."""
+    rng = np.random.default_rng(0)
+    for planar, d, r in ((True, 2, 1), (False, 3, 3)):
+        cfg = LoopConfig(covariance_floor_m=0.02, covariance_floor_rad=0.01)
+        pv, rv = rng.uniform(0, 0.5, 6), rng.uniform(0, 0.05, 6)
+        pv[0] = rv[0] = 0.0
+        gain = LoopCloser(cfg, planar).information_gain(NodeUncertainty(pv, rv))
+        for k in range(6):
+            P = np.diag([pv[k] / d] * d + [rv[k] / r] * r)
+            R = np.diag([0.02**2] * d + [0.01**2] * r)
+            assert np.isclose(gain[k], 0.5 * np.linalg.slogdet(np.eye(d + r) + P @ np.linalg.inv(R))[1])
+        assert gain[0] == 0.0
+
+
+def test_candidates_the_graph_already_ties_closely_are_not_verified():
+    """With min_information_gain, the recent pass (σ 1 cm relative to the new keyframe) is skipped and
+    counted; the first pass (σ 3 m) is still verified."""
+    from registration import geometry as G
+
+    pos, unc = _scene()
+    poses = np.array([G.xytheta_to_matrix(x, y, 0.0) for x, y, _ in pos])
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 2))) for k in range(100)]
+    for gain, expect_recent in ((0.0, True), (3.0, False)):
+        closer = LoopCloser(LoopConfig(min_information_gain=gain, use_descriptor=False), planar=True)
+        verified: list[int] = []
+        closer.verify = lambda kfs, P, i, j, *a, **k: verified.append(i)  # type: ignore[method-assign]
+        closer.detect(keyframes, poses, 99, unc)
+        assert 5 in verified
+        assert any(50 <= i <= 70 for i in verified) == expect_recent
+        assert closer.stats.skipped_low_gain == (0 if expect_recent else closer.stats.candidates - len(verified))

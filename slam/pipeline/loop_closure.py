@@ -66,6 +66,7 @@ class LoopStats:
     rejected_free_space: int = 0
     rejected_correlative: int = 0
     correlative_starts: int = 0  # verifications whose ICP started from the correlative search's pose
+    skipped_low_gain: int = 0  # spatial candidates not verified: a closure could add too little information
     accepted_as_group: int = 0  # closures first rejected as inconsistent with the estimate, then accepted as a consistent group
 
 
@@ -127,6 +128,18 @@ class LoopCloser:
         sd = np.sqrt(uncertainty.position_var)
         cap = np.where(sd > c.far_sigma_m, max(c.far_max_radius_m, c.max_radius_m), c.max_radius_m)
         return np.minimum(cap, c.search_radius_m + c.radius_sigma_factor * sd)
+
+    def information_gain(self, uncertainty: NodeUncertainty) -> Array:
+        """Per keyframe, an upper bound (nats) on the mutual information a closure with the new keyframe
+        would add: ½ Σ_axes log(1 + σ²_rel / σ²_floor), with the relative variance split evenly over the
+        translation and rotation axes and the closure's covariance at its floor (an ICP covariance is
+        never below it, so the true gain is smaller). Ila, Porta & Andrade-Cetto, T-RO 2010: a link
+        whose information gain is small is redundant."""
+        c = self.config
+        d, r = (2, 1) if self.planar else (3, 3)
+        gain_t = d * np.log1p(uncertainty.position_var / d / max(c.covariance_floor_m, 1e-6) ** 2)
+        gain_r = r * np.log1p(uncertainty.rotation_var / r / max(c.covariance_floor_rad, 1e-6) ** 2)
+        return 0.5 * (gain_t + gain_r)
 
     def spatial_candidates(self, kf: Keyframe, positions: Array, radius: float | Array,
                            far: NDArray[np.bool_] | None = None) -> list[int]:
@@ -234,7 +247,8 @@ class LoopCloser:
                 pts = keyframes[j].points
                 pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= c.correlative_max_range_m]
                 min_score = c.far_min_correlative_score if far else c.min_correlative_score
-                found = correlative.match(pts, pyramid, guess_sensor, win_m, win_rad, min_score=min_score)
+                found = correlative.match(pts, pyramid, guess_sensor, win_m, win_rad, min_score=min_score,
+                                          min_gain=c.correlative_min_gain)
                 if found.score < min_score:
                     self.stats.rejected_correlative += 1
                     return None
@@ -372,15 +386,21 @@ class LoopCloser:
         out: list[LoopClosure] = []
         tried: set[int] = set()
         far = np.sqrt(uncertainty.position_var) > c.far_sigma_m
+        gain = self.information_gain(uncertainty) if c.min_information_gain > 0 else None
+        tied = False  # a candidate the graph already ties to j closely: the place is known
         for i in self.spatial_candidates(kj, poses[:, :3, 3], self.search_radii(uncertainty), far):
             self.stats.candidates += 1
             tried.add(i)
+            if gain is not None and gain[i] < c.min_information_gain:
+                self.stats.skipped_low_gain += 1
+                tied = True
+                continue
             guess = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor
             lc = self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial", bool(far[i]))
             if lc is not None:
                 out.append(lc)
         out.extend(self._consistent_group(poses, j))
-        if not out:
+        if not out and not tied:
             for i, yaw in self.descriptor_candidates(kj):
                 if any(abs(i - t) <= c.submap_keyframes for t in tried):
                     continue
