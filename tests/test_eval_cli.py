@@ -51,6 +51,17 @@ def test_relations_cli_reports_missing_and_json(tmp_path):
     assert json.loads((tmp_path / "o.json").read_text())["n_missing"] == 1
 
 
+def test_relations_none_of_which_match_the_trajectory_are_an_error(tmp_path):
+    """A trajectory from another log (no relation stamp in it) exits 2 with one line naming the trajectory,
+    rather than printing a 'nan ± nan' table."""
+    write_tum(tmp_path / "t.tum", Trajectory(np.arange(10.0), np.tile(np.eye(4), (10, 1, 1))))
+    (tmp_path / "x.relations").write_text("100 101 1 0 0 0 0 0\n200 203 2 0 0 0 0 0\n")
+    r = _run("relations", tmp_path / "t.tum", tmp_path / "x.relations")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ")
+    assert "t.tum" in lines[0] and "x.relations" in lines[0] and "nan" not in r.stdout
+
+
 def test_loops_cli_with_ground_truth(tmp_path):
     """`slam eval loops GRAPH --gt` prints the self-scored precision and the ground-truth precision/recall."""
     pytest.importorskip("slam.graph")

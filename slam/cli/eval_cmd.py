@@ -161,6 +161,11 @@ def relations_cmd(
     from slam.trajectory_io import read_trajectory
 
     res = evaluate_relations(read_trajectory(traj, traj_format.value, stamps), read_relations(relations), stamp_tol)
+    if res.n_used == 0:
+        from registration.errors import InputFileError
+
+        raise InputFileError(traj, None, f"no relation of {relations} has both stamps in this trajectory (within "
+                             f"--stamp-tol {stamp_tol} s): was it written from the same log?")
     ds = dataset or recognise_dataset(relations) or recognise_dataset(traj)
     out = res.to_dict()
     _echo_pairs(out)
