@@ -96,7 +96,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         "odometry_stats": result.odometry_stats,
         "dimension": 2 if result.planar else 3,
         "stage_times_s": result.stage_times_s,
-        "map_scans_fused": result.map_builder.scans_fused if result.map_builder else 0,
+        "map_scans_fused": result.map_scans_fused,
         "on_error": cfg.on_error,
         "skipped_scans": result.skipped_scans,
         "errors": result.errors,
@@ -109,10 +109,10 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         summary["stage_times_s"]["outputs_s"] = time.perf_counter() - t1
         summary["wall_time_s"] = time.perf_counter() - t0
         summary["scans_per_second"] = n / wall_run if wall_run > 0 else 0.0
-        # Both processes' peaks, summed: an upper bound on the memory the run held at any one time.
-        summary["peak_memory_mb"] = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-                                     + result.front_end_peak_memory_mb)
-        summary["front_end_peak_memory_mb"] = result.front_end_peak_memory_mb
+        # Every process's peak, summed: an upper bound on the memory the run held at any one time.
+        peaks = {"main": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, **result.peak_memory_mb}
+        summary["peak_memory_mb"] = sum(peaks.values())
+        summary["peak_memory_by_process_mb"] = peaks
         full = json.loads((folder / "summary.json").read_text())
         full.update(summary)
         with open(folder / "summary.json", "w") as fh:

@@ -149,7 +149,7 @@ class SlamConfig(_Model):
     loops: LoopConfig = LoopConfig()
     backend: BackendConfig = BackendConfig()
     mapping: MappingStageConfig = MappingStageConfig()
-    front_end_process: bool = Field(True, description="run the front end (odometry, keyframes) in its own process beside loop closure, the back end and mapping; the results are the same either way")
+    stage_processes: bool = Field(True, description="run the front end (odometry, keyframes) and the mapping stage each in its own process, beside loop closure and the back end; the results are the same either way")
     max_scans: int | None = Field(None, ge=1)
     on_error: Literal["stop", "skip"] = "stop"
 

@@ -13,16 +13,13 @@ Both kinds share one interface: :meth:`submit` a frame, take the keyframes :meth
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import queue
-import resource
 import time
 from dataclasses import dataclass, field
 from typing import Iterator
 
-from registration.errors import GpslamError
 from registration.frame import Frame
 
+from .child import ChildProcess, Reply, peak_memory_mb
 from .config import SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, ScanTrack, WheelEdge
 
@@ -78,35 +75,22 @@ class InlineFrontEnd:
         pass
 
 
-def _serve(config: SlamConfig, planar: bool, inbox, outbox) -> None:  # type: ignore[no-untyped-def]
-    """Child process: frames from *inbox* (None ends), ("keyframe", kf, edge, wheel) to *outbox*, then
-    ("done", summary); on an error ("error", message, is_input_error)."""
-    from slam.blas import single_blas_thread
-
-    try:
-        with single_blas_thread():
-            front = InlineFrontEnd(config, planar)
-            while (frame := inbox.get()) is not None:
-                front.submit(frame)
-                for item in front.ready():
-                    outbox.put(("keyframe", *item))
-            ready, summary = front.finish()
-            summary.peak_memory_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-            for item in ready:
-                outbox.put(("keyframe", *item))
-            outbox.put(("done", summary))
-    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group; the parent reports it
-        pass
-    except BaseException as e:  # noqa: BLE001 — every failure is reported to the parent, which raises it
-        outbox.put(("error", f"{type(e).__name__}: {e}" if not isinstance(e, GpslamError) else str(e),
-                    isinstance(e, GpslamError)))
-    finally:
-        outbox.close()
-        outbox.join_thread()
+def _serve(config: SlamConfig, planar: bool, frames: Iterator[Frame], reply: Reply) -> None:
+    """Child: ("keyframe", kf, edge, wheel) for each keyframe of *frames*, then ("done", summary)."""
+    front = InlineFrontEnd(config, planar)
+    for frame in frames:
+        front.submit(frame)
+        for item in front.ready():
+            reply(("keyframe", *item))
+    ready, summary = front.finish()
+    summary.peak_memory_mb = peak_memory_mb()
+    for item in ready:
+        reply(("keyframe", *item))
+    reply(("done", summary))
 
 
 class FrontEndProcess:
-    """The front end in a child process (forkserver start: no threads of this one are inherited).
+    """The front end in a child process (:class:`~slam.pipeline.child.ChildProcess`).
 
     Args:
         config: the run's configuration.
@@ -114,77 +98,41 @@ class FrontEndProcess:
         max_queued: frames in flight before :meth:`submit` waits for the child (bounds memory on 3D logs).
     """
 
-    _POLL_S = 0.5
-
     def __init__(self, config: SlamConfig, planar: bool, max_queued: int = 64) -> None:
-        ctx = mp.get_context("forkserver")
-        self._inbox = ctx.Queue(maxsize=max_queued)
-        self._outbox = ctx.Queue()
-        self._proc = ctx.Process(target=_serve, args=(config, planar, self._inbox, self._outbox),
-                                 name="gpslam-front-end", daemon=True)
-        self._proc.start()
+        self._child = ChildProcess(_serve, (config, planar), "front-end", max_queued)
         self._summary: FrontEndSummary | None = None
-
-    def _check_alive(self) -> None:
-        if not self._proc.is_alive():
-            raise GpslamError(f"the front-end process stopped unexpectedly (exit code {self._proc.exitcode})")
 
     def submit(self, frame: Frame) -> None:
         """Queue *frame*; waits while the child is ``max_queued`` frames behind."""
-        while True:
-            try:
-                self._inbox.put(frame, timeout=self._POLL_S)
-                return
-            except queue.Full:
-                self._check_alive()
+        self._child.send(frame)
 
-    def _handle(self, msg: tuple) -> Ready | None:
-        kind = msg[0]
-        if kind == "keyframe":
-            return msg[1], msg[2], msg[3]
-        if kind == "done":
+    def _keyframe(self, msg: tuple) -> Ready | None:
+        if msg[0] == "done":
             self._summary = msg[1]
             return None
-        _, text, input_error = msg
-        raise GpslamError(text) if input_error else RuntimeError(f"front-end process: {text}")
+        return msg[1], msg[2], msg[3]
 
     def ready(self) -> Iterator[Ready]:
         """Keyframes the child has finished so far (does not wait)."""
-        while True:
-            try:
-                msg = self._outbox.get_nowait()
-            except queue.Empty:
-                return
-            item = self._handle(msg)
-            if item is not None:
+        for msg in self._child.replies():
+            if (item := self._keyframe(msg)) is not None:
                 yield item
 
     def finish(self) -> tuple[list[Ready], FrontEndSummary]:
         """Waits for the child to process every submitted frame: the remaining keyframes and the summary."""
-        self.submit(None)  # type: ignore[arg-type]
+        self._child.send(None)
         out: list[Ready] = []
         while self._summary is None:
-            try:
-                msg = self._outbox.get(timeout=self._POLL_S)
-            except queue.Empty:
-                self._check_alive()
-                continue
-            item = self._handle(msg)
-            if item is not None:
+            if (item := self._keyframe(self._child.receive(wait=True))) is not None:  # type: ignore[arg-type]
                 out.append(item)
-        self._proc.join()
+        self._child.join()
         return out, self._summary
 
     def close(self) -> None:
         """Stop the child (also after an error or Ctrl-C); idempotent."""
-        if self._proc.is_alive():
-            self._proc.terminate()
-        self._proc.join(timeout=5)
-        for q in (self._inbox, self._outbox):
-            q.cancel_join_thread()
-            q.close()
+        self._child.close()
 
 
 def start_front_end(config: SlamConfig, planar: bool) -> InlineFrontEnd | FrontEndProcess:
-    """The front end as ``config.front_end_process`` asks: in a child process or inline."""
-    return FrontEndProcess(config, planar) if config.front_end_process else InlineFrontEnd(config, planar)
+    """The front end as ``config.stage_processes`` asks: in a child process or inline."""
+    return FrontEndProcess(config, planar) if config.stage_processes else InlineFrontEnd(config, planar)

@@ -71,6 +71,22 @@ def cap_range(frame: Frame, cap: float) -> Frame:
     return replace(frame, points=pts, ranges=ranges, no_return=far, max_range=cap)
 
 
+class RecomposeSchedule:
+    """When to recompose the global map: at most every *every* optimisations that moved poses."""
+
+    def __init__(self, every: int) -> None:
+        self.every = every
+        self._since = 0
+
+    def due(self, force: bool = False) -> bool:
+        """Count one optimisation; True (and start counting again) when a recomposition is due."""
+        self._since += 1
+        if not force and self._since < self.every:
+            return False
+        self._since = 0
+        return True
+
+
 class MapBuilder:
     """Builds the occupancy map of a SLAM run (see module docstring)."""
 
@@ -81,7 +97,7 @@ class MapBuilder:
         self._anchor_of: dict[int, int] = {}  # keyframe id → anchor keyframe id
         self._anchors: list[int] = []
         self._count_in_current = 0
-        self._since_recompose = 0
+        self._schedule = RecomposeSchedule(config.recompose_every_keyframes)
         self.scans_fused = 0
 
     @property
@@ -106,6 +122,11 @@ class MapBuilder:
 
     def add_keyframe(self, kf: Keyframe, pose: Array) -> None:
         """Fuse keyframe *kf* (at its current estimate *pose*, world_T_base) into the current submap."""
+        if self.online:
+            self.add_scan(kf.id, self.scan_for(kf), pose)
+
+    def add_scan(self, keyframe_id: int, scan: Frame, pose: Array) -> None:
+        """Fuse keyframe *keyframe_id*'s planar *scan* (:meth:`scan_for`) at *pose* into the current submap."""
         if not self.online:
             return
         pose = planar_pose(pose)
@@ -113,12 +134,12 @@ class MapBuilder:
             self.fuser = SubmapFuser(self._geometry_around(pose[None, :2, 3]), self.config.params,
                                      submap_half_size=self.config.submap_half_size_m)
         if not self._anchors or self._count_in_current >= self.config.keyframes_per_submap:
-            self.fuser.add_submap(kf.id, pose)
-            self._anchors.append(kf.id)
+            self.fuser.add_submap(keyframe_id, pose)
+            self._anchors.append(keyframe_id)
             self._count_in_current = 0
         anchor = self._anchors[-1]
-        self.fuser.add_scan(anchor, self.scan_for(kf), pose)
-        self._anchor_of[kf.id] = anchor
+        self.fuser.add_scan(anchor, scan, pose)
+        self._anchor_of[keyframe_id] = anchor
         self._count_in_current += 1
         self.scans_fused += 1
 
@@ -134,18 +155,22 @@ class MapBuilder:
 
     def refresh(self, keyframe_poses: Array, force: bool = False) -> int:
         """Re-place submaps at the anchors' current poses (at most every ``recompose_every_keyframes``)."""
-        if not self.online or self.fuser is None:
+        if not self.online or self.fuser is None or not self._schedule.due(force):
             return 0
-        self._since_recompose += 1
-        if not force and self._since_recompose < self.config.recompose_every_keyframes:
-            return 0
-        self._since_recompose = 0
         anchors = {a: planar_pose(keyframe_poses[a]) for a in self._anchors}
         self._fit_world_grid(anchors)
         return self.fuser.update_poses(anchors)
 
+    def close(self) -> None:
+        """Nothing to stop (the interface of :class:`~slam.pipeline.mapping_process.MappingProcess`)."""
+
     def finish(self, keyframes: list[Keyframe], keyframe_poses: Array) -> OccupancyMap | None:
         """The final map at the final keyframe poses."""
+        scans = [] if self.online or not self.enabled else [self.scan_for(kf) for kf in keyframes]
+        return self.finish_scans(scans, keyframe_poses)
+
+    def finish_scans(self, scans: list[Frame], keyframe_poses: Array) -> OccupancyMap | None:
+        """:meth:`finish` from the keyframes' planar scans (used by the baselines only)."""
         if not self.config.enabled:
             return None
         if self.online:
@@ -160,7 +185,7 @@ class MapBuilder:
         geom = self._geometry_around(P[:, :2, 3])
         cls = ClassicGPOM if self.config.params.method == "gpom" else LogOddsGrid
         mapper = cls(geom, self.config.params)
-        for kf, T in zip(keyframes, P):
-            mapper.update(self.scan_for(kf), T)
+        for scan, T in zip(scans, P):
+            mapper.update(scan, T)
             self.scans_fused += 1
         return mapper.to_map().crop_observed()

@@ -24,7 +24,6 @@ from .backend import PipelineBackend
 from .config import SlamConfig
 from .frontend import Keyframe
 from .loop_closure import LoopClosure
-from .mapping_stage import MapBuilder
 from .online_graph import OnlineGraph
 from .trajectory import interpolate_scan_poses
 
@@ -57,11 +56,11 @@ class SlamResult:
     loop_stats: dict
     stage_times_s: dict[str, float]
     occupancy_map: object | None = None  # mapping.occupancy_map.OccupancyMap
-    map_builder: MapBuilder | None = None
+    map_scans_fused: int = 0
     skipped_scans: int = 0
     errors: list[str] = field(default_factory=list)
     odometry_stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges left out
-    front_end_peak_memory_mb: float = 0.0  # of the front-end process (0 when it ran inline)
+    peak_memory_mb: dict[str, float] = field(default_factory=dict)  # of the stage processes ("front_end", "mapping"), when they ran as such
 
 
 def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
@@ -94,8 +93,9 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
 def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
     """Run the pipeline over an iterable of :class:`Frame` (time order). BLAS runs single-threaded.
 
-    With ``config.front_end_process`` (the default) odometry runs in a child process
-    (:mod:`slam.pipeline.front_process`); a script calling this then needs the usual
+    With ``config.stage_processes`` (the default) odometry and mapping run in child processes
+    (:mod:`slam.pipeline.front_process`, :mod:`slam.pipeline.mapping_process`); a script calling this
+    then needs the usual
     ``if __name__ == "__main__":`` guard of multiprocessing. A frame generator is closed on the way
     out, also on an error or Ctrl-C, so a reader's background thread stops here rather than at
     interpreter shutdown."""
@@ -112,6 +112,7 @@ def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | 
 
 def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None) -> SlamResult:
     from .front_process import start_front_end
+    from .mapping_process import MappingProcess, start_mapping
 
     t_start = time.perf_counter()
     times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
@@ -136,7 +137,7 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
                 planar = frame.is_planar
                 front = start_front_end(config, planar)
                 graph = OnlineGraph(config.loops, config.backend, planar)
-                mapper = MapBuilder(config.mapping, planar)
+                mapper = start_mapping(config.mapping, planar, config.stage_processes)
             front.submit(frame)
             n += 1
             for item in front.ready():
@@ -146,18 +147,25 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
         if front is None:
             raise GpslamError("the log yielded no scans")
         rest, summary = front.finish()
+        for item in rest:
+            add_keyframe(*item)
+        if not keyframes:
+            raise GpslamError("the log yielded no scans")
+        t4 = time.perf_counter()
+        kf_poses = graph.finish()
+        times["final_solve_s"] = time.perf_counter() - t4
+        t6 = time.perf_counter()
+        occ = mapper.finish(keyframes, kf_poses)
+        if isinstance(mapper, MappingProcess):
+            times["mapping_s"] += mapper.time_s  # the child's busy time; this process only sent it scans
+        else:
+            times["mapping_s"] += time.perf_counter() - t6
     finally:
         if front is not None:
             front.close()
-    for item in rest:
-        add_keyframe(*item)
-    if not keyframes:
-        raise GpslamError("the log yielded no scans")
+            mapper.close()
     times["odometry_s"] = summary.odometry_s
-    t4 = time.perf_counter()
-    kf_poses = graph.finish()
     times.update(graph.times)
-    times["final_solve_s"] = time.perf_counter() - t4
     tr = summary.track
     stamps = np.asarray(tr.stamps)
     odom = np.asarray(tr.odom_poses)
@@ -166,8 +174,8 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
                                    np.array([k.odom_pose for k in kfs]), kf_poses, planar)
     wheel = np.asarray(tr.wheel_poses) if all(w is not None for w in tr.wheel_poses) else None
     stats = graph.stats
-    t6 = time.perf_counter()
-    occ = mapper.finish(kfs, kf_poses)
-    times["mapping_s"] += time.perf_counter() - t6
+    peaks = {"front_end": summary.peak_memory_mb} if config.stage_processes else {}
+    if isinstance(mapper, MappingProcess):
+        peaks["mapping"] = mapper.peak_memory_mb
     return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, graph.backend, graph.loops, stats, times, occ,
-                      mapper, odometry_stats=summary.stats, front_end_peak_memory_mb=summary.peak_memory_mb)
+                      map_scans_fused=mapper.scans_fused, odometry_stats=summary.stats, peak_memory_mb=peaks)

@@ -1,5 +1,5 @@
-"""The front end in its own process gives exactly the inline results, and a failure or an interrupt
-on either side ends the run cleanly: the error surfaces in the caller and no child is left behind."""
+"""The front end and mapping in their own processes give exactly the inline results, and a failure or an
+interrupt on either side ends the run cleanly: the error surfaces in the caller and no child is left behind."""
 
 from __future__ import annotations
 
@@ -29,14 +29,17 @@ def sim_log(tmp_path_factory):
     return path
 
 
-def _run(path, process: bool):
-    return run_slam(open_log(path).frames(), SlamConfig(front_end_process=process))
+def _run(path, process: bool, map_method: str = "fastgpom"):
+    cfg = SlamConfig.model_validate({"stage_processes": process, "mapping": {"params": {"method": map_method}}})
+    return run_slam(open_log(path).frames(), cfg)
 
 
-def test_process_and_inline_front_ends_give_identical_results(sim_log):
+@pytest.mark.parametrize("map_method", ["fastgpom", "logodds"])
+def test_stage_processes_and_inline_give_identical_results(sim_log, map_method):
     """Same keyframes, odometry, closures, optimised poses and map, bit for bit: the back half consumes
-    the keyframes in the same order either way."""
-    a, b = _run(sim_log, False), _run(sim_log, True)
+    the keyframes in the same order either way, and the mapping process gets the same calls (online
+    submaps, or the baseline built at the end from every keyframe)."""
+    a, b = _run(sim_log, False, map_method), _run(sim_log, True, map_method)
     assert len(a.keyframes) == len(b.keyframes) > 10
     assert len(a.loops) == len(b.loops) > 0
     for x, y in zip(a.keyframes, b.keyframes):
@@ -45,6 +48,8 @@ def test_process_and_inline_front_ends_give_identical_results(sim_log):
     assert np.array_equal(a.poses, b.poses)
     assert np.array_equal(a.occupancy_map.probability, b.occupancy_map.probability)
     assert a.odometry_stats == b.odometry_stats
+    assert a.map_scans_fused == b.map_scans_fused == len(a.keyframes)
+    assert set(b.peak_memory_mb) == {"front_end", "mapping"} and a.peak_memory_mb == {}
     assert not mp.active_children()
 
 
