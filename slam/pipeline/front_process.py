@@ -2,7 +2,7 @@
 
 The front end (per-scan odometry, keyframe selection, odometry edges) never looks at the back end, so
 it can run ahead in a second process while this one closes loops, updates iSAM2 and maps — the split
-of tracking from loop closing in PTAM (Klein & Murray, ISMAR 2007, §4) and ORB-SLAM (Mur-Artal et al.,
+of tracking from mapping and loop closing in PTAM (Klein & Murray, ISMAR 2007) and ORB-SLAM (Mur-Artal et al.,
 T-RO 2015, §III), and of Cartographer's local from its global SLAM. Keyframes come back in order and
 the back half consumes them in the same order as inline, so both give identical results; on Intel
 the ~50 s of odometry then overlap the loop closure instead of adding to it.
