@@ -59,19 +59,21 @@ class RelativeUncertainty:
     def __init__(self, planar: bool, limit_m2: float = 100.0) -> None:
         self.planar = planar
         self.limit_m2 = float(limit_m2)
-        self._i: list[int] = []
-        self._j: list[int] = []
-        self._var_t: list[float] = []
-        self._var_r: list[float] = []
+        # Edges in arrays that double when full (read every keyframe: no list-to-array copy each time).
+        self._n = 0
+        self._ends = np.zeros((64, 2), dtype=np.int64)
+        self._var = np.zeros((64, 2))  # translation, rotation variance (traces)
 
     def add_edge(self, i: int, j: int, covariance: Array) -> None:
         """An edge between keyframes *i* and *j* with its ``(dof, dof)`` covariance (any frame: traces only)."""
         d = 2 if self.planar else 3
         C = np.asarray(covariance, dtype=float)
-        self._i.append(int(i))
-        self._j.append(int(j))
-        self._var_t.append(float(np.trace(C[:d, :d])))
-        self._var_r.append(float(np.trace(C[d:, d:])))
+        if self._n == len(self._ends):
+            self._ends = np.concatenate([self._ends, np.zeros_like(self._ends)])
+            self._var = np.concatenate([self._var, np.zeros_like(self._var)])
+        self._ends[self._n] = (i, j)
+        self._var[self._n] = (np.trace(C[:d, :d]), np.trace(C[d:, d:]))
+        self._n += 1
 
     def from_node(self, j: int, positions: Array) -> NodeUncertainty:
         """Uncertainty of every keyframe ``0 … len(positions) − 1`` relative to keyframe *j*.
@@ -79,34 +81,34 @@ class RelativeUncertainty:
         *positions* ``(K, 2|3)`` are the current estimates (m), for the lever arms."""
         K = len(positions)
         limit = self.limit_m2
-        if not self._i:
+        if not self._n:
             pv = np.full(K, limit)
             pv[j] = 0.0
             return NodeUncertainty(pv, np.where(pv > 0, limit, 0.0))
-        a, b = np.asarray(self._i), np.asarray(self._j)
-        vt, vr = np.asarray(self._var_t), np.asarray(self._var_r)
+        a, b = self._ends[: self._n, 0], self._ends[: self._n, 1]
+        vt, vr = self._var[: self._n, 0], self._var[: self._n, 1]
         centre = 0.5 * (positions[a] + positions[b])
         lever2 = np.sum((centre - positions[j]) ** 2, axis=1)
         w = vt + vr * lever2 + 1e-12  # strictly positive: csgraph drops explicit zeros
         # Parallel edges (odometry and wheel, repeated closures): keep the most certain one.
         lo, hi = np.minimum(a, b), np.maximum(a, b)
-        order = np.lexsort((w, hi, lo))
+        pair = lo * K + hi  # one sort key per keyframe pair
+        order = np.lexsort((w, pair))
         first = np.ones(len(order), dtype=bool)
-        first[1:] = (lo[order][1:] != lo[order][:-1]) | (hi[order][1:] != hi[order][:-1])
+        first[1:] = pair[order][1:] != pair[order][:-1]
         keep = order[first]
-        lo, hi, w, vr = lo[keep], hi[keep], w[keep], vr[keep]
+        lo, hi, w, vr, pair = lo[keep], hi[keep], w[keep], vr[keep], pair[keep]  # pair is sorted now
         graph = csr_matrix((w, (lo, hi)), shape=(K, K))
         dist, pred = dijkstra(graph, directed=False, indices=j, return_predecessors=True, limit=limit)
         reached = np.isfinite(dist)
         pos_var = np.where(reached, dist, limit)
         # Rotation variance along the same paths: the edge from each keyframe's predecessor, summed
         # up the predecessor tree by pointer doubling (log₂ K vectorised steps).
-        edge_r = csr_matrix((vr, (lo, hi)), shape=(K, K))
-        edge_r = edge_r + edge_r.T
         has = reached & (pred >= 0)
         idx = np.flatnonzero(has)
         acc = np.zeros(K)
-        acc[idx] = np.asarray(edge_r[pred[idx], idx]).ravel()
+        p = pred[idx]
+        acc[idx] = vr[np.searchsorted(pair, np.minimum(p, idx) * K + np.maximum(p, idx))]
         up = np.where(has, pred, j)
         while True:
             nxt = up[up]
