@@ -35,7 +35,8 @@ class PipelineBackend:
         self.graph = PoseGraph(self.dim)
         self.kernel = (RobustKernel(_KERNEL_NAMES[loops.robust_kernel], loops.robust_scale)
                        if loops.robust_kernel != "none" else None)
-        self._poses: list[Array] = []
+        self._buf = np.zeros((64, 4, 4))  # current estimates of keyframes 0 … _n − 1, doubling when full
+        self._n = 0
         self._since_solve = 0
         self.solve_time_s = 0.0
         self.pruned_loops = 0
@@ -45,11 +46,19 @@ class PipelineBackend:
     @property
     def poses(self) -> Array:
         """``(K, 4, 4)`` current estimates of the keyframe poses."""
-        return np.asarray(self._poses).reshape(-1, 4, 4)
+        return self._buf[: self._n].copy()
+
+    def _set_poses(self, poses: Array) -> None:
+        P = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+        self._buf[: len(P)] = P
+        self._n = len(P)
 
     def add_keyframe(self, node_id: int, initial_pose: Array) -> None:
         self.graph.add_node(node_id, initial_pose)
-        self._poses.append(np.asarray(initial_pose, dtype=float))
+        if self._n == len(self._buf):
+            self._buf = np.concatenate([self._buf, np.zeros_like(self._buf)])
+        self._buf[self._n] = initial_pose
+        self._n += 1
         if self._smoother is not None:
             self._smoother.add_node(node_id, initial_pose)
 
@@ -79,13 +88,13 @@ class PipelineBackend:
                 self._restart_smoother()
                 loop_added = True
             if loop_added:
-                self._poses = list(self._smoother.estimate()[1])
+                self._set_poses(self._smoother.estimate()[1])
             else:
-                self._poses[-1] = self._smoother.pose(len(self._poses) - 1)
+                self._buf[self._n - 1] = self._smoother.pose(self._n - 1)
         else:
             self._since_solve += 1
             if loop_added and self._since_solve >= self.config.chordal_every_keyframes:
-                self._poses = list(self._solve_chordal(self.poses))
+                self._set_poses(self._solve_chordal(self.poses))
                 self._since_solve = 0
         self.solve_time_s += time.perf_counter() - t0
 
@@ -145,7 +154,7 @@ class PipelineBackend:
                 self.graph = _without_edges(self.graph, set(bad))
                 self.pruned_loops += len(bad)
                 P = self._solve_batch(P)
-        self._poses = list(P)
+        self._set_poses(P)
         self.graph.set_poses(P)
         self.solve_time_s += time.perf_counter() - t0
         return P
