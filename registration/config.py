@@ -154,6 +154,17 @@ class IcpOdometryConfig(_Frozen):
     alternative_start_m: float | None = Field(None, gt=0.0)
     alternative_start_rad: float | None = Field(None, gt=0.0)
     alternative_start_min_gain: float = Field(0.05, ge=0.0)
+    #: point-to-plane with smooth wheel odometry: a Gaussian prior at the wheel prediction enters every
+    #: ICP step (registration.point_to_plane.PosePrior), with σ = prior_sigma_m + prior_sigma_per_m · d
+    #: per axis of translation and prior_sigma_rad + prior_sigma_rad_per_m · d + prior_sigma_rad_per_rad · |Δθ|
+    #: of rotation for a wheel step of d metres and Δθ radians, against point residuals of
+    #: prior_point_sigma (m); None = no prior. Holds the pose along a featureless corridor.
+    prior_point_sigma: float | None = Field(None, gt=0.0)
+    prior_sigma_m: float = Field(0.01, gt=0.0)
+    prior_sigma_per_m: float = Field(0.1, ge=0.0)
+    prior_sigma_rad: float = Field(0.005, gt=0.0)
+    prior_sigma_rad_per_m: float = Field(0.08, ge=0.0)
+    prior_sigma_rad_per_rad: float = Field(0.1, ge=0.0)
 
 
 def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:

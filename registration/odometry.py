@@ -34,7 +34,7 @@ from .config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
 from .errors import DegenerateInputError, GeometryError
 from .frame import Frame
 from .icp import IcpTarget, evaluate_alignment, icp
-from .point_to_plane import icp_point_to_plane
+from .point_to_plane import PosePrior, icp_point_to_plane
 from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
@@ -260,13 +260,27 @@ class IcpOdometry(Odometry):
                 return inside_alt
         return res_alt.fitness >= res.fitness + self.config.alternative_start_min_gain
 
-    def _align(self, pts: Array, target: IcpTarget, start: Array):  # type: ignore[no-untyped-def]
-        """ICP result from *start*, or None when there are too few pairs."""
+    def _align(self, pts: Array, target: IcpTarget, start: Array, prior: PosePrior | None = None):  # type: ignore[no-untyped-def]
+        """ICP result from *start* (with the *prior*, point-to-plane only), or None when there are too few pairs."""
         cfg = self.config
         try:
-            return (icp_point_to_plane if cfg.point_to_plane else icp)(pts, target, start, cfg.icp)
+            if cfg.point_to_plane:
+                return icp_point_to_plane(pts, target, start, cfg.icp, prior=prior)
+            return icp(pts, target, start, cfg.icp)
         except DegenerateInputError:
             return None
+
+    def _prior(self, pose: Array, increment: Array, dim: int) -> PosePrior | None:
+        """The wheel prediction *pose* (world_T_sensor) as a prior, its σ from the *increment*'s length and turn."""
+        c = self.config
+        if c.prior_point_sigma is None or not c.point_to_plane:
+            return None
+        d = float(np.linalg.norm(increment[:3, 3]))
+        turn = geo.rotation_angle(increment[:3, :3])
+        s_t = c.prior_sigma_m + c.prior_sigma_per_m * d
+        s_r = c.prior_sigma_rad + c.prior_sigma_rad_per_m * d + c.prior_sigma_rad_per_rad * turn
+        n_r = 1 if dim == 2 else 3
+        return PosePrior(pose, np.diag([(c.prior_point_sigma / s_t) ** 2] * dim + [(c.prior_point_sigma / s_r) ** 2] * n_r))
 
     def update(self, frame: Frame) -> OdometryStep:
         cfg = self.config
@@ -281,8 +295,10 @@ class IcpOdometry(Odometry):
             self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
         target = self._target
         guided = self._wheel_guided(frame)
-        res = self._align(pts, target, guess)
         alt = self._alternative_start(frame, prediction)
+        # The wheels as a prior only where they are smooth: lumpy ones are a wrong guess.
+        prior = self._prior(guess, prediction, frame.dim) if guided and alt is None else None
+        res = self._align(pts, target, guess, prior)
         if alt is not None:
             self.alternative_starts += 1
             start = self._pose @ alt

@@ -9,11 +9,13 @@ the eigenvectors of the smallest eigenvalue of the k-neighbour scatter matrix (H
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from . import geometry as geo
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se3_exp
@@ -22,7 +24,7 @@ from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher
 
 Array = NDArray[np.float64]
 
-__all__ = ["estimate_normals", "icp_point_to_plane"]
+__all__ = ["PosePrior", "estimate_normals", "icp_point_to_plane"]
 
 
 def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -1,
@@ -63,11 +65,27 @@ def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -
     return V[:, :, 0]
 
 
+@dataclass(frozen=True)
+class PosePrior:
+    """A Gaussian prior on the ICP pose: ``Log(pose⁻¹ · T)`` (the error in T's own frame, translation
+    first) has information *information*, in units of one unit-weight point residual: a prior of
+    σ_prior on an axis, for point residuals of σ_point, has information (σ_point / σ_prior)²."""
+
+    pose: Array  # 4×4, the prior mean (e.g. the wheel-odometry prediction)
+    information: Array  # (3, 3) planar (x, y, θ) or (6, 6) (ρ, φ)
+
+
 def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None = None,
-                       config: IcpConfig | None = None) -> IcpResult:
+                       config: IcpConfig | None = None, prior: PosePrior | None = None) -> IcpResult:
     """Point-to-plane ICP of *source* onto *target*; same arguments and result as :func:`registration.icp.icp`.
 
-    The covariance of the result uses the plane model whatever ``config.covariance_model`` says.
+    With a *prior*, each Gauss-Newton step minimises the point-to-plane cost plus the prior's
+    (a maximum-a-posteriori step): along directions the scan leaves unconstrained, such as the axis
+    of a featureless corridor, the pose stays near the prior instead of drifting; elsewhere the
+    points outweigh it. (The soft form of the degeneracy remedy of Zhang, Kaess & Singh, "On
+    degeneracy of optimization-based state estimation problems", ICRA 2016, with the motion model
+    as the prior, as in Cartographer's scan matcher, Hess et al. 2016, §IV-C.) The covariance of
+    the result uses the plane model, without the prior, whatever ``config.covariance_model`` says.
     """
     config = (config or IcpConfig()).model_copy(update={"covariance_model": "plane"})
     tgt = _as_target(target, config)
@@ -101,8 +119,11 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
                 Jw = J * robust_weights(np.abs(e), config)[:, None]
             else:
                 Jw = J
+            H, g = J.T @ Jw, Jw.T @ e
+            if prior is not None:
+                H, g = _add_prior(H, g, prior, R, t, d)
             try:
-                xi = np.linalg.solve(J.T @ Jw, -(Jw.T @ e))
+                xi = np.linalg.solve(H, -g)
             except np.linalg.LinAlgError as exc:
                 raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations") from exc
             if d == 2:
@@ -120,6 +141,18 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
         moved = S @ R.T + t
     gate = config.gates[-1]
     return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
+
+
+def _add_prior(H: Array, g: Array, prior: PosePrior, R: Array, t: Array, d: int) -> tuple[Array, Array]:
+    """Normal equations plus the prior's terms: its error e = Log(P⁻¹T) moves by Ad_{T⁻¹} ξ under the left
+    increment T ← Exp(ξ)T, so H += AᵀΛA and g += AᵀΛe with A = Ad_{T⁻¹}."""
+    T = np.eye(4)
+    T[:d, :d], T[:d, 3] = R, t
+    E = geo.relative(prior.pose, T)
+    e = geo.se2_log(E) if d == 2 else geo.se3_log(E)
+    A = geo.adjoint(geo.inverse(T), planar=d == 2)
+    AL = A.T @ prior.information
+    return H + AL @ A, g + AL @ e
 
 
 def _plane_rows(m: Array, n: Array) -> Array:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from registration import geometry as geo
 from registration.config import IcpConfig
@@ -159,3 +160,81 @@ def test_point_to_plane_on_real_kitti_pair_moves_forward():
     assert 0.6 < r.transform[0, 3] < 0.9
     assert np.degrees(np.linalg.norm(geo.so3_log(r.transform[:3, :3]))) < 0.5
     assert np.all(np.linalg.eigvalsh(r.covariance) > 0)
+
+
+def _room_2d(step: float = 0.05) -> np.ndarray:
+    """A 2D room outline (8 m × 5 m) with a pillar: constrains x, y and θ."""
+    s = np.arange(0.0, 1.0, step / 8.0)
+    walls = [np.column_stack([-4 + 8 * s, np.full_like(s, -2.5)]), np.column_stack([-4 + 8 * s, np.full_like(s, 2.5)]),
+             np.column_stack([np.full_like(s, -4.0), -2.5 + 5 * s]), np.column_stack([np.full_like(s, 4.0), -2.5 + 5 * s])]
+    a = np.linspace(0, 2 * np.pi, 80, endpoint=False)
+    return np.vstack(walls + [np.column_stack([1.0 + 0.4 * np.cos(a), 0.5 + 0.4 * np.sin(a)])])
+
+
+_EXACT = IcpConfig(gates=(0.5, 0.2), tol_translation=1e-12, tol_rotation=1e-12, max_iterations=100)
+
+
+def test_prior_of_zero_information_changes_nothing_and_a_stiff_prior_wins():
+    """The MAP step's two limits: a prior of zero information gives the plain point-to-plane result
+    bit for bit; a prior of 10¹² information pins the pose to the prior's mean (1e-6) however well the
+    points say otherwise."""
+    from registration.point_to_plane import PosePrior
+
+    P = _room_2d()
+    T = geo.xytheta_to_matrix(0.12, -0.05, 0.03)
+    src = geo.transform_points(geo.inverse(T), P)
+    plain = icp_point_to_plane(src, P, None, _EXACT)
+    assert np.abs(plain.transform - T).max() < 1e-9
+    zero = icp_point_to_plane(src, P, None, _EXACT, prior=PosePrior(np.eye(4), np.zeros((3, 3))))
+    np.testing.assert_array_equal(zero.transform, plain.transform)
+    Pm = geo.xytheta_to_matrix(0.08, 0.0, 0.01)
+    stiff = icp_point_to_plane(src, P, None, _EXACT, prior=PosePrior(Pm, np.eye(3) * 1e12))
+    assert np.abs(geo.se2_log(geo.relative(Pm, stiff.transform))).max() < 1e-6
+
+
+def test_prior_shifts_the_estimate_by_the_gaussian_product_formula():
+    """Noise-free points and a prior 2 cm / 0.3° off the truth: the MAP pose is the information-weighted
+    mean ξ* = (H + Λ)⁻¹ Λ ξ_p (to first order in the offset), with H = Σ JᵀJ the points' information at the
+    truth — the closed form of two Gaussians' product — so a weak prior moves the estimate little and a
+    strong one moves it most of the way."""
+    from registration.point_to_plane import PosePrior
+
+    P = _room_2d()
+    T = geo.xytheta_to_matrix(0.12, -0.05, 0.03)
+    src = geo.transform_points(geo.inverse(T), P)
+    # Point information at the truth: each source point lands on its own target point, whose PCA normal
+    # is the wall's (the pillar's radial direction); rows [nᵀ, m × n] for a left increment.
+    tree = cKDTree(P)
+    n = estimate_normals(P, tree, k=_EXACT.normal_neighbors)
+    moved = geo.transform_points(T, src)
+    nn = n[tree.query(moved)[1]]
+    J = np.column_stack([nn, moved[:, 0] * nn[:, 1] - moved[:, 1] * nn[:, 0]])
+    H = J.T @ J
+    xi_p = np.array([0.02, -0.01, np.radians(0.3)])
+    for scale in (0.01, 0.1, 1.0):
+        Lam = scale * np.diag(np.diag(H))
+        r = icp_point_to_plane(src, P, None, _EXACT, prior=PosePrior(T @ geo.se2_exp(xi_p), Lam))
+        got = geo.se2_log(geo.relative(T, r.transform))
+        want = np.linalg.solve(H + Lam, Lam @ xi_p)
+        # 8 % of the shift: the residual is the second-order term (normals and lever arms move with ξ).
+        np.testing.assert_allclose(got, want, atol=0.08 * np.abs(want).max())
+
+
+def test_prior_holds_the_pose_along_a_featureless_corridor():
+    """Two parallel walls say nothing about motion along them: without a prior the normal equations are
+    singular (or the pose slides), with one the along-corridor coordinate is the prior's while the
+    across-corridor offset and the heading come from the walls."""
+    from registration.errors import DegenerateInputError
+    from registration.point_to_plane import PosePrior
+
+    x = np.arange(-10.0, 10.0, 0.05)
+    P = np.vstack([np.column_stack([x, np.full_like(x, -1.0)]), np.column_stack([x, np.full_like(x, 1.0)])])
+    T = geo.xytheta_to_matrix(0.3, 0.04, 0.02)
+    src = geo.transform_points(geo.inverse(T), P)[40:-40]  # the scan sees a shorter stretch of both walls
+    Pm = geo.xytheta_to_matrix(0.22, 0.0, 0.0)  # the wheels: 8 cm short, no sideways motion, no turn
+    r = icp_point_to_plane(src, P, None, _EXACT, prior=PosePrior(Pm, np.diag([1.0, 1.0, 1.0])))
+    x_r, y_r, th_r = geo.matrix_to_xytheta(r.transform)
+    assert abs(th_r - 0.02) < 1e-4 and abs(y_r - 0.04) < 1e-3
+    assert abs(x_r - 0.22) < 1e-3
+    with pytest.raises(DegenerateInputError):
+        icp_point_to_plane(src, P, None, _EXACT)

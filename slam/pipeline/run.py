@@ -87,7 +87,10 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
                                          alternative_start_rad=c.icp_alternative_start_rad,
                                          map_voxel_size=0.03 if planar else 0.3,
                                          max_range=c.max_range if planar else 100.0, min_range=c.min_range,
-                                         use_wheel_odometry=c.use_wheel_odometry))
+                                         use_wheel_odometry=c.use_wheel_odometry,
+                                         prior_point_sigma=c.icp_wheel_prior_sigma, prior_sigma_per_m=c.wheel_sigma_per_m,
+                                         prior_sigma_rad_per_m=c.wheel_sigma_rad_per_m,
+                                         prior_sigma_rad_per_rad=c.wheel_sigma_rad_per_rad))
 
 
 def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
