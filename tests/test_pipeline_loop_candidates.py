@@ -143,3 +143,27 @@ def test_candidates_the_graph_already_ties_closely_are_not_verified():
         assert 5 in verified
         assert any(50 <= i <= 70 for i in verified) == expect_recent
         assert closer.stats.skipped_low_gain == (0 if expect_recent else closer.stats.candidates - len(verified))
+
+
+def test_descriptor_closure_far_from_a_confident_estimate_is_rejected_and_not_pooled():
+    """A descriptor match (an aliased corridor 9 m along, as on the hospital log) against a graph sure to
+    5 cm where the two keyframes are: rejected as inconsistent and kept out of the group pool, while the
+    same match is accepted when the estimate agrees, when the estimate's uncertainty covers the 9 m, or
+    with the check off. (3D keyframes: the ICP result is stubbed, so there are no scans to check for free
+    space; the test is the gate's arithmetic.)"""
+    from registration import geometry as G
+
+    T = G.se3_exp([0.1, 0.0, 0.0, 0.0, 0.0, 0.02])  # what ICP found: j almost on top of i
+    res = SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
+                          transform=T, covariance=np.eye(6) * 1e-4)
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(2)]
+    far_off = G.se3_exp([9.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    sure, unsure = np.eye(6) * 0.05**2, np.diag([30.0] * 3 + [0.1] * 3)
+    for estimate, limit, accepted in (((far_off, sure), 15.0, False), ((T, sure), 15.0, True),
+                                      ((far_off, unsure), 15.0, True), ((far_off, sure), None, True)):
+        closer = LoopCloser(LoopConfig(descriptor_max_mahalanobis=limit), planar=False)
+        closer._align = lambda *a, **k: res  # type: ignore[method-assign]
+        lc, reason = closer._attempt(keyframes, 0, 1, None, T, np.eye(4), None, "descriptor", estimate)
+        assert (lc is not None) == accepted
+        if not accepted:
+            assert reason == "rejected_consistency" and closer._pending == []

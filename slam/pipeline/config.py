@@ -106,6 +106,7 @@ class LoopConfig(_Model):
     group_tolerance_deg: float = Field(2.0, gt=0, description="... and this (°)")
     max_free_space_violation: float = Field(0.15, ge=0, le=1, description="2D: largest fraction of either scan's points inside the other's observed free space")
     descriptor_min_fitness: float = Field(0.8, gt=0, le=1.0)
+    descriptor_max_mahalanobis: float | None = Field(15.0, gt=0, description="a descriptor closure is rejected when it lies this many σ (per degree of freedom, as max_mahalanobis) from the graph's estimate of the two keyframes' relative pose, with that estimate's uncertainty relative to the new keyframe; None = no check. Descriptor closures before the check, in the final solutions: Intel 0 of 20, MIT CSAIL 0 of 4, Freiburg hospital 0 of 15 within 20 cm / 1° (all 5–28 m off)")
     robust_kernel: Literal["none", "huber", "cauchy", "gm"] = "cauchy"
     robust_scale: float = Field(1.0, gt=0, description="kernel width in whitened units (σ)")
     covariance_floor_m: float = Field(0.01, ge=0)

@@ -223,7 +223,8 @@ class LoopCloser:
         return hit[1], pyramid
 
     def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
-               relative_cov: Array | None, source: str, far: bool = False) -> LoopClosure | None:
+               relative_cov: Array | None, source: str, far: bool = False,
+               estimate: tuple[Array, Array] | None = None) -> LoopClosure | None:
         """Align keyframe *j*'s scan onto *i*'s local map from ``guess_sensor = i_sensor_T_j_sensor``.
 
         In 2D with the correlative search on, ICP starts from the best pose of a branch-and-bound
@@ -235,7 +236,9 @@ class LoopCloser:
         against 0.45 without, both at precision 1.0; on the whole Intel log the relation error is
         0.029 m with it against 0.038 m without (0.029–0.045 m with a ±1.5 m window, as one revisit
         at its edge closed or not). A graph-far candidate (*far*, see ``LoopConfig.far_sigma_m``) is
-        matched against its larger local map and must reach ``far_min_correlative_score``.
+        matched against its larger local map and must reach ``far_min_correlative_score``. A descriptor
+        candidate (whose *guess_sensor* is the descriptor's heading only) may carry the *estimate*
+        ``(i_sensor_T_j_sensor, covariance)`` of the graph, against which its closure is checked.
         """
         c = self.config
         self.stats.verified += 1
@@ -258,7 +261,7 @@ class LoopCloser:
         except DegenerateInputError:
             self.stats.rejected_icp += 1
             return None
-        closure, reason = self._attempt(keyframes, i, j, target, start, guess_sensor, relative_cov, source)
+        closure, reason = self._attempt(keyframes, i, j, target, start, guess_sensor, relative_cov, source, estimate)
         if closure is None:
             setattr(self.stats, reason, getattr(self.stats, reason) + 1)
             return None
@@ -281,7 +284,8 @@ class LoopCloser:
         return win_m, win_rad
 
     def _attempt(self, keyframes: list[Keyframe], i: int, j: int, target: IcpTarget, start: Array, guess_sensor: Array,
-                 relative_cov: Array | None, source: str) -> tuple[LoopClosure | None, str]:
+                 relative_cov: Array | None, source: str, estimate: tuple[Array, Array] | None = None
+                 ) -> tuple[LoopClosure | None, str]:
         """One ICP from *start* and the acceptance tests: (closure, "") or (None, name of the failed test's counter)."""
         c = self.config
         kj = keyframes[j]
@@ -309,12 +313,15 @@ class LoopCloser:
             if max(v1, v2) > c.max_free_space_violation:
                 return None, "rejected_free_space"
         if source == "spatial" and relative_cov is not None:
-            innov = (G.se2_log(G.inverse(guess_sensor) @ T) if self.planar
-                     else G.se3_log(G.inverse(guess_sensor) @ T))
-            S = relative_cov + res.covariance
-            m2 = float(innov @ np.linalg.solve(S, innov))
-            if m2 > c.max_mahalanobis**2 * self.dof:
+            if self._mahalanobis2(guess_sensor, relative_cov, T, res.covariance) > c.max_mahalanobis**2 * self.dof:
                 self._pending.append(self._closure(keyframes, i, j, T, res, source))
+                return None, "rejected_consistency"
+        if source == "descriptor" and estimate is not None and c.descriptor_max_mahalanobis is not None:
+            # A place that looks alike but lies where the graph is sure the robot was not: an aliased
+            # corridor, not a revisit (on the Intel, CSAIL and hospital logs every descriptor closure
+            # this rejects was 5–28 m off in the final map). Never pooled into a group: aliased
+            # stretches of corridor agree with each other.
+            if self._mahalanobis2(estimate[0], estimate[1], T, res.covariance) > c.descriptor_max_mahalanobis**2 * self.dof:
                 return None, "rejected_consistency"
         if source == "descriptor":
             # Unique basin: restart from a perturbed start and require the same answer.
@@ -327,6 +334,12 @@ class LoopCloser:
             if np.linalg.norm(d[:3, 3]) > 0.05 or np.linalg.norm(G.so3_log(d[:3, :3])) > np.radians(1.0):
                 return None, "rejected_consistency"
         return self._closure(keyframes, i, j, T, res, source), ""
+
+    def _mahalanobis2(self, expected: Array, expected_cov: Array, T: Array, cov: Array) -> float:
+        """Squared Mahalanobis distance of the alignment *T* (covariance *cov*) from the *expected*
+        relative pose (covariance *expected_cov*), on the tangent space of the expected pose."""
+        innov = G.se2_log(G.inverse(expected) @ T) if self.planar else G.se3_log(G.inverse(expected) @ T)
+        return float(innov @ np.linalg.solve(expected_cov + cov, innov))
 
     def _closure(self, keyframes: list[Keyframe], i: int, j: int, T: Array, res, source: str) -> LoopClosure:  # type: ignore[no-untyped-def]
         """The closure ``i_base_T_j_base`` from the sensor-frame alignment *T* and its ICP covariance (plus the floor)."""
@@ -406,7 +419,9 @@ class LoopCloser:
                     continue
                 self.stats.candidates += 1
                 guess = G.xytheta_to_matrix(0.0, 0.0, yaw)
-                lc = self.verify(keyframes, poses, i, j, guess, None, "descriptor")
+                est = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor
+                lc = self.verify(keyframes, poses, i, j, guess, None, "descriptor",
+                                 estimate=(est, uncertainty.covariance(i, self.planar)))
                 if lc is not None:
                     out.append(lc)
                     break
