@@ -63,11 +63,12 @@ class SweepResult:
 
 
 def _sweepable() -> dict[str, type]:
-    """LoopConfig fields a sweep may vary: the plain int and float ones."""
+    """LoopConfig fields a sweep may vary: the int and float ones, optional (None = off) or not."""
     out = {}
     for name, f in LoopConfig.model_fields.items():
-        if f.annotation in (int, float):
-            out[name] = f.annotation
+        for kind in (int, float):
+            if f.annotation in (kind, kind | None):
+                out[name] = kind
     return out
 
 

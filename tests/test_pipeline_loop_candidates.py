@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from registration import geometry as G
 from slam.pipeline.config import LoopConfig
 from slam.pipeline.loop_closure import LoopCloser
 from slam.pipeline.uncertainty import NodeUncertainty
@@ -63,14 +64,20 @@ def test_correlative_window_follows_the_relative_uncertainty_within_its_caps():
     assert closer._window("descriptor", None) == (cfg.descriptor_window_m, deg(cfg.descriptor_window_deg))
 
 
-def _return_after_drift(rng, drift):
-    """True poses of old keyframes 0–4 and new ones 30–34 (a revisit of the same corridor stretch); the
-    estimate has the new ones moved by *drift* (the loop's accumulated error), and closures measured
-    from the truth with 1 cm / 0.1° noise."""
-    from registration import geometry as G
+def _return_after_drift(rng, drift, loop: bool = True):
+    """True poses of old keyframes 0–4 and new ones 30–34 (a revisit of the same corridor stretch); with
+    *loop*, keyframes 5–29 go round a 10 m-radius circle (a 63 m loop), else they pace 6 m along the
+    corridor and back. The estimate has the new ones moved by *drift* (the loop's accumulated error), and closures
+    measured from the truth with 1 cm / 0.1° noise."""
     from slam.pipeline.loop_closure import LoopClosure
 
     truth = np.array([G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(40)])
+    if loop:
+        a = np.linspace(-np.pi / 2, 1.5 * np.pi, 27)[1:-1]  # 25 keyframes round the circle
+        truth[5:30] = [G.xytheta_to_matrix(2.5 + 10 * np.cos(t), 10 + 10 * np.sin(t), t + np.pi / 2) for t in a]
+    else:
+        xs = np.concatenate([2.5 + 0.5 * np.arange(1, 13), 8.5 - 0.5 * np.arange(1, 14)])
+        truth[5:30] = [G.xytheta_to_matrix(x, 0.0, 0.0 if k < 12 else np.pi) for k, x in enumerate(xs)]
     truth[30:35] = [G.xytheta_to_matrix(0.5 * (k - 30) + 0.2, 0.3, 0.05) for k in range(30, 35)]
     est = truth.copy()
     est[30:35] = drift @ truth[30:35]
@@ -85,7 +92,6 @@ def test_closures_that_agree_with_each_other_but_not_the_drifted_estimate_are_ac
     """After a 2 m / 12° drift every closure of the return fails the test against the estimate; as a
     group they agree (their cycles through the estimate's local relative poses close), so they are
     accepted once three keyframes have one, and not before."""
-    from registration import geometry as G
 
     rng = np.random.default_rng(4)
     est, closures = _return_after_drift(rng, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
@@ -100,7 +106,6 @@ def test_closures_that_agree_with_each_other_but_not_the_drifted_estimate_are_ac
 
 def test_closures_that_disagree_with_each_other_are_not_accepted():
     """Three closures each off by its own wrong corridor slide (0.5 m apart) form no group."""
-    from registration import geometry as G
 
     rng = np.random.default_rng(5)
     est, closures = _return_after_drift(rng, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
@@ -130,7 +135,6 @@ def test_information_gain_is_the_gaussian_mutual_information_at_the_covariance_f
 def test_candidates_the_graph_already_ties_closely_are_not_verified():
     """With min_information_gain, the recent pass (σ 1 cm relative to the new keyframe) is skipped and
     counted; the first pass (σ 3 m) is still verified."""
-    from registration import geometry as G
 
     pos, unc = _scene()
     poses = np.array([G.xytheta_to_matrix(x, y, 0.0) for x, y, _ in pos])
@@ -151,11 +155,10 @@ def test_descriptor_closure_far_from_a_confident_estimate_is_rejected_and_not_po
     same match is accepted when the estimate agrees, when the estimate's uncertainty covers the 9 m, or
     with the check off. (3D keyframes: the ICP result is stubbed, so there are no scans to check for free
     space; the test is the gate's arithmetic.)"""
-    from registration import geometry as G
 
     T = G.se3_exp([0.1, 0.0, 0.0, 0.0, 0.0, 0.02])  # what ICP found: j almost on top of i
     res = SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
-                          transform=T, covariance=np.eye(6) * 1e-4)
+                          transform=T, covariance=np.diag([1e-4] * 3 + [1e-6] * 3))  # 1 cm, 0.06°
     keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(2)]
     far_off = G.se3_exp([9.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     sure, unsure = np.eye(6) * 0.05**2, np.diag([30.0] * 3 + [0.1] * 3)
@@ -167,3 +170,42 @@ def test_descriptor_closure_far_from_a_confident_estimate_is_rejected_and_not_po
         assert (lc is not None) == accepted
         if not accepted:
             assert reason == "rejected_consistency" and closer._pending == []
+
+
+def test_closure_whose_rotation_the_scans_barely_constrain_is_rejected():
+    """The rotation-σ gate reads the ICP covariance's rotation block only, by its largest axis: a match
+    with σ_θ = 0.3° fails a 0.2° limit whatever its translation σ, one with 0.05° passes even with a
+    metre of translation σ, and without a limit both pass. The ICP result is stubbed (3D, no scans)."""
+    T = np.eye(4)
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(2)]
+
+    def result(rot_sigma_deg: float, trans_sigma_m: float):
+        # A rotated rotation block: the gate must not depend on the axes the covariance is expressed in.
+        R = G.so3_exp([0.3, -0.2, 0.5])
+        rot = R @ np.diag([np.radians(rot_sigma_deg) ** 2, 1e-12, 1e-12]) @ R.T
+        cov = np.zeros((6, 6))
+        cov[:3, :3], cov[3:, 3:] = np.eye(3) * trans_sigma_m**2, rot
+        return SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
+                               transform=T, covariance=cov)
+
+    for limit, rot_sd, trans_sd, accepted in ((0.2, 0.3, 0.001, False), (0.2, 0.05, 1.0, True),
+                                              (0.2, 0.19, 0.0, True), (None, 0.3, 0.001, True)):
+        closer = LoopCloser(LoopConfig(max_rotation_sigma_deg=limit), planar=False)
+        closer._align = lambda *a, _r=result(rot_sd, trans_sd), **k: _r  # type: ignore[method-assign]
+        lc, reason = closer._attempt(keyframes, 0, 1, None, T, np.eye(4), None, "spatial")
+        assert (lc is not None) == accepted, (limit, rot_sd, trans_sd)
+        if not accepted:
+            assert reason == "rejected_fitness"
+
+
+def test_a_group_implying_implausible_drift_is_not_accepted():
+    """The 2 m / 12° return of the test above, after a 63 m loop (3 % drift): a group. The same mutually
+    consistent closures after pacing 6 m of corridor and back (an aliased, door-periodic corridor; > 10 %): no
+    group, unless the drift check is off."""
+    for loop, limit, expect in ((True, 0.05, 3), (False, 0.05, 0), (False, None, 3)):
+        est, closures = _return_after_drift(np.random.default_rng(4), G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), loop)
+        closer = LoopCloser(LoopConfig(group_max_drift_fraction=limit), planar=True)
+        drift = [closer._implied_drift(est, lc) for lc in closures[:3]]
+        assert all((0.02 < d < 0.05) if loop else (d > 0.1) for d in drift), drift
+        closer._pending = closures[:3]
+        assert len(closer._consistent_group(est, 32)) == expect

@@ -303,6 +303,8 @@ class LoopCloser:
         min_fit = c.min_fitness if source == "spatial" else c.descriptor_min_fitness
         if res.fitness < min_fit or res.rmse > c.max_rmse or res.degenerate:
             return None, "rejected_fitness"
+        if c.max_rotation_sigma_deg is not None and self._rotation_sigma_deg(res.covariance) > c.max_rotation_sigma_deg:
+            return None, "rejected_fitness"
         T = res.transform
         if self.planar:
             T = G.xytheta_to_matrix(G.matrix_to_xytheta(T))
@@ -335,6 +337,11 @@ class LoopCloser:
                 return None, "rejected_consistency"
         return self._closure(keyframes, i, j, T, res, source), ""
 
+    def _rotation_sigma_deg(self, cov: Array) -> float:
+        """Largest rotational standard deviation (°) of an ICP covariance ((x, y, θ) or (ρ, φ))."""
+        rot = cov[2:, 2:] if self.planar else cov[3:, 3:]
+        return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(rot).max(), 0.0))))
+
     def _mahalanobis2(self, expected: Array, expected_cov: Array, T: Array, cov: Array) -> float:
         """Squared Mahalanobis distance of the alignment *T* (covariance *cov*) from the *expected*
         relative pose (covariance *expected_cov*), on the tangent space of the expected pose."""
@@ -354,7 +361,9 @@ class LoopCloser:
     def _consistent_group(self, poses: Array, j: int) -> list[LoopClosure]:
         """Closures that failed only the consistency test, accepted together when ``group_min_size`` of
         them, from as many different recent keyframes, agree with each other though not with the
-        estimate (the estimate drifted, not the matches: MIT CSAIL's return to its start).
+        estimate (the estimate drifted, not the matches: MIT CSAIL's return to its start). Only closures
+        implying a plausible drift rate (``group_max_drift_fraction``) count: a corridor whose doors repeat
+        yields whole groups of mutually consistent aliases, but metres off after a few metres of travel.
 
         Two closures a = (i₁, j₁, Z₁), b = (i₂, j₂, Z₂) agree when the cycle
         Z₁⁻¹ (X_i₁⁻¹ X_i₂) Z₂ (X_j₂⁻¹ X_j₁) is within ``group_tolerance_m`` / ``_deg`` of the identity: it
@@ -366,6 +375,10 @@ class LoopCloser:
         if c.group_min_size <= 0 or len({lc.j for lc in self._pending}) < c.group_min_size:
             return []
         P = self._pending
+        if c.group_max_drift_fraction is not None:
+            P = [lc for lc in P if self._implied_drift(poses, lc) <= c.group_max_drift_fraction]
+            if len({lc.j for lc in P}) < c.group_min_size:
+                return []
         n = len(P)
         ok = np.eye(n, dtype=bool)
         for a in range(n):
@@ -388,6 +401,14 @@ class LoopCloser:
         self._pending = []
         self.stats.accepted_as_group += len(accepted)
         return accepted
+
+    @staticmethod
+    def _implied_drift(poses: Array, lc: LoopClosure) -> float:
+        """Translation (m) by which closure *lc* says the estimate of keyframe j relative to i is off, over
+        the distance (m) travelled from i to j along the estimate: the odometry drift rate it implies."""
+        err = G.relative(lc.measurement, G.relative(poses[lc.i], poses[lc.j]))
+        path = float(np.linalg.norm(np.diff(poses[lc.i:lc.j + 1, :3, 3], axis=0), axis=1).sum())
+        return float(np.linalg.norm(err[:3, 3])) / max(path, 1e-9)
 
     def detect(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty) -> list[LoopClosure]:
         """All accepted closures between the new keyframe *j* and older keyframes, given estimates
