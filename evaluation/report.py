@@ -333,6 +333,14 @@ def build_report(
                   and not k.endswith("_time_s")} if isinstance(summary, dict) else {}
         if counts:
             m["summary"] = counts  # top-level numbers of summary.json (scan, keyframe, loop counts ...)
+        pruned = (summary.get("loop_stats") or {}).get("pruned") if isinstance(summary, dict) else None
+        if "loops" in m and isinstance(pruned, int) and pruned >= 0:
+            # graph.g2o holds only the closures the back end kept; the ones it pruned (violated by more
+            # than its thresholds, by default Cartographer's 20 cm / 1°) count against the verifier.
+            lp = m["loops"]
+            lp["pruned_by_back_end"] = pruned
+            total = lp["n_loops"] + pruned
+            lp["precision_counting_pruned"] = lp["n_correct"] / total if total else float("nan")
         if tm:
             m["timings_s"] = tm
         else:

@@ -77,7 +77,8 @@ def make_result_dir(rd: Path, rng) -> tuple[Path, Path]:
     var = np.where(cls == -1, 0.25, 0.02) + rng.uniform(0, 0.01, (h, w))
     np.savez(rd / "map.npz", mean=2 * prob - 1, variance=var, probability=prob, resolution=RES, origin=origin)
     (rd / "summary.json").write_text(json.dumps({"scans": len(gt), "keyframes": len(keys), "timings": {"read log": 1.3, "odometry": 12.5, "loop closure": 4.2,
-                                                              "optimisation": 0.8, "mapping": 20.1}}))
+                                                              "optimisation": 0.8, "mapping": 20.1},
+                                                "loop_stats": {"accepted": 15, "pruned": 5}}))
     return rd.parent / "gt.tum", rd.parent / "gt_map.yaml"
 
 
@@ -116,6 +117,9 @@ def test_report_images_decode_and_metrics_match_console(tmp_path, rng):
     assert metrics["loops"]["n_loops"] == 10 and metrics["graph"]["loop_edges"] == 10
     assert metrics["loops_vs_truth"]["precision"] == pytest.approx(6 / 10)
     assert metrics["timings_s"]["mapping"] == 20.1 and metrics["summary"]["scans"] == 300
+    # The closures the back end pruned are not in graph.g2o; they count against the verifier.
+    lp = metrics["loops"]
+    assert lp["pruned_by_back_end"] == 5 and lp["precision_counting_pruned"] == pytest.approx(lp["n_correct"] / 15)
 
 
 def test_report_with_partial_outputs(tmp_path, rng):

@@ -209,3 +209,23 @@ def test_a_group_implying_implausible_drift_is_not_accepted():
         assert all((0.02 < d < 0.05) if loop else (d > 0.1) for d in drift), drift
         closer._pending = closures[:3]
         assert len(closer._consistent_group(est, 32)) == expect
+
+
+def test_a_group_contradicted_by_a_nearby_closure_accepted_on_its_own_is_not_accepted():
+    """The drifted return's group, once a closure between the same stretches (old keyframe 5, new 31)
+    has been accepted on its own as the estimate has it: the estimate is right there, so the group is
+    an alias and is refused (its members leave the pool). A closure accepted elsewhere (old keyframe 20,
+    outside the group window of every member) leaves the group alone."""
+    from slam.pipeline.loop_closure import LoopClosure
+
+    for i_alone, expect in ((5, 0), (20, 3)):
+        est, closures = _return_after_drift(np.random.default_rng(4), G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
+        odd = closures[3]  # a pooled closure that agrees with none of the group
+        odd.measurement = odd.measurement @ G.xytheta_to_matrix(0.5, 0.0, 0.0)
+        closer = LoopCloser(LoopConfig(), planar=True)
+        closer._pending = closures[:4]
+        closer._recent = [LoopClosure(i_alone, 31, G.relative(est[i_alone], est[31]), np.eye(3) * 1e-4, 0.9, 0.02, "spatial")]
+        assert len(closer._consistent_group(est, 33)) == expect
+        assert closer.stats.groups_contradicted == (expect == 0)
+        # Accepted: the pool is emptied. Refused: only the group's members leave it.
+        assert closer._pending == ([] if expect else [odd])

@@ -68,6 +68,7 @@ class LoopStats:
     correlative_starts: int = 0  # verifications whose ICP started from the correlative search's pose
     skipped_low_gain: int = 0  # spatial candidates not verified: a closure could add too little information
     accepted_as_group: int = 0  # closures first rejected as inconsistent with the estimate, then accepted as a consistent group
+    groups_contradicted: int = 0  # groups not accepted: a closure accepted on its own nearby disagrees
 
 
 def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 0.1, rel_margin: float = 0.02) -> float:
@@ -109,6 +110,7 @@ class LoopCloser:
         self.dof = 3 if planar else 6
         self.stats = LoopStats()
         self._pending: list[LoopClosure] = []  # passed every test but consistency with the estimate
+        self._recent: list[LoopClosure] = []  # accepted on their own within the group window
         self.index = DescriptorIndex(PolarDescriptorConfig()) if planar and config.use_descriptor else None
         self._icp = IcpConfig(gates=config.icp_gates, max_iterations=config.icp_max_iterations,
                               tol_translation=config.icp_tolerance, tol_rotation=config.icp_tolerance,
@@ -369,7 +371,9 @@ class LoopCloser:
         Z₁⁻¹ (X_i₁⁻¹ X_i₂) Z₂ (X_j₂⁻¹ X_j₁) is within ``group_tolerance_m`` / ``_deg`` of the identity: it
         uses the estimate only between neighbouring old keyframes and between neighbouring new ones,
         which a long loop's drift leaves intact (the pairwise test of Olson's single-cluster graph
-        partitioning, ICRA 2009, and of RRR, Latif et al. 2013, in its simplest form)."""
+        partitioning, ICRA 2009, and of RRR, Latif et al. 2013, in its simplest form). A group must also
+        agree with every closure accepted on its own within the window whose old keyframe is within the
+        window of a member's."""
         c = self.config
         self._pending = [lc for lc in self._pending if lc.j > j - c.group_window_keyframes]
         if c.group_min_size <= 0 or len({lc.j for lc in self._pending}) < c.group_min_size:
@@ -383,11 +387,7 @@ class LoopCloser:
         ok = np.eye(n, dtype=bool)
         for a in range(n):
             for b in range(a + 1, n):
-                A, B = P[a], P[b]
-                E = (G.inverse(A.measurement) @ G.relative(poses[A.i], poses[B.i]) @ B.measurement
-                     @ G.relative(poses[B.j], poses[A.j]))
-                ok[a, b] = ok[b, a] = (np.linalg.norm(E[:3, 3]) <= c.group_tolerance_m
-                                       and G.rotation_angle(E[:3, :3]) <= np.radians(c.group_tolerance_deg))
+                ok[a, b] = ok[b, a] = self._agree(poses, P[a], P[b])
         # Greedy clique: from the closure with most agreements, add the others (most agreeing first)
         # that agree with every member so far.
         degree = ok.sum(axis=1)
@@ -398,9 +398,26 @@ class LoopCloser:
         if len({P[k].j for k in group}) < c.group_min_size:
             return []
         accepted = [P[k] for k in group]
+        w = c.group_window_keyframes
+        if any(abs(r.i - a.i) <= w and not self._agree(poses, a, r) for a in accepted for r in self._recent):
+            # A closure accepted on its own between the same stretches of old and new keyframes says
+            # the estimate is right there: the group is an alias (MIT CSAIL: keyframe 892 closed with
+            # 272 as estimated while 273–276 offered a group 2.5 m off, one door along).
+            self.stats.groups_contradicted += 1
+            self._pending = [lc for lc in self._pending if all(lc is not a for a in accepted)]
+            return []
         self._pending = []
         self.stats.accepted_as_group += len(accepted)
         return accepted
+
+    def _agree(self, poses: Array, A: LoopClosure, B: LoopClosure) -> bool:
+        """Whether closures *A* and *B* agree: their cycle through the estimate's relative poses of the two
+        old and of the two new keyframes is within ``group_tolerance_m`` / ``_deg`` of the identity."""
+        c = self.config
+        E = (G.inverse(A.measurement) @ G.relative(poses[A.i], poses[B.i]) @ B.measurement
+             @ G.relative(poses[B.j], poses[A.j]))
+        return bool(np.linalg.norm(E[:3, 3]) <= c.group_tolerance_m
+                    and G.rotation_angle(E[:3, :3]) <= np.radians(c.group_tolerance_deg))
 
     @staticmethod
     def _implied_drift(poses: Array, lc: LoopClosure) -> float:
@@ -433,6 +450,7 @@ class LoopCloser:
             lc = self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial", bool(far[i]))
             if lc is not None:
                 out.append(lc)
+        self._recent = [lc for lc in self._recent if lc.j > j - c.group_window_keyframes] + out
         out.extend(self._consistent_group(poses, j))
         if not out and not tied:
             for i, yaw in self.descriptor_candidates(kj):
