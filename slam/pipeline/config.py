@@ -94,7 +94,7 @@ class LoopConfig(_Model):
     descriptor_window_m: float = Field(1.5, gt=0, description="descriptor candidates: ± this around the place (the descriptor gives no offset)")
     descriptor_window_deg: float = Field(8.0, gt=0, description="... and ± this around the descriptor's heading")
     correlative_min_gain: float = Field(0.05, ge=0, description="ICP starts from the correlative pose only when its score (mean likelihood of the scan's points, 0–1) beats the guess's by this much; Intel's first 3000 scans: 0 / 0.05 / 0.15 gave 0.0171 / 0.0174 / 0.0589 m")
-    min_correlative_score: float = Field(0.0, ge=0, le=1, description="reject before ICP when the best score in the window is below this")
+    min_correlative_score: float = Field(0.5, ge=0, le=1, description="reject before ICP when the best score in the window is below this (the bound also prunes the search). Of the spatial candidates verified at 0, those below 0.5 were Intel 29 %, MIT CSAIL 44 %, Freiburg hospital 83 %, and none of them was accepted (the accepted ones' 1st percentile: 0.56–0.59)")
     icp_sigma: float = Field(0.03, gt=0, description="a-priori range-point noise σ (m) for the χ² test")
     chi2_factor: float = Field(3.0, gt=0)
     min_fitness: float = Field(0.6, gt=0, le=1.0)
