@@ -195,7 +195,7 @@ def test_closure_whose_rotation_the_scans_barely_constrain_is_rejected():
         lc, reason = closer._attempt(keyframes, 0, 1, None, T, np.eye(4), None, "spatial")
         assert (lc is not None) == accepted, (limit, rot_sd, trans_sd)
         if not accepted:
-            assert reason == "rejected_fitness"
+            assert reason == "rejected_heading_sigma"
 
 
 def test_a_group_implying_implausible_drift_is_not_accepted():

@@ -11,11 +11,15 @@ Verification: point-to-plane ICP (:func:`registration.point_to_plane.icp_point_t
 keyframe's scan against the candidate's local map (the candidate and its ±k neighbouring keyframes
 in the candidate's sensor frame), from the estimate's relative pose (spatial) or the descriptor's
 heading (place recognition) — in 2D refined first by a correlative branch-and-bound search
-(:mod:`registration.correlative`) when that scores clearly better. A closure is accepted when (1) the residual χ² test passes
-(Res ≤ factor·(n − dof)·σ²), (2) the fitness (inlier fraction) and RMSE are good enough and (3) it
-is consistent: for spatial candidates the Mahalanobis distance between the ICP result and the
-estimate, under their relative uncertainty, is small; for descriptor candidates a second ICP from
-a perturbed start must reach the same pose (a unique basin).
+(:mod:`registration.correlative`) when that scores clearly better; a candidate whose best score stays
+below ``min_correlative_score`` is rejected before ICP. A closure is accepted when (1) the residual χ² test passes
+(Res ≤ factor·(n − dof)·σ²), (2) the fitness (inlier fraction) and RMSE are good enough and the
+ICP's heading σ is small (``max_rotation_sigma_deg``), (3) neither scan has points in the other's
+observed free space (2D), and (4) it is consistent: for spatial candidates the Mahalanobis distance
+between the ICP result and the estimate, under their relative uncertainty, is small (else it may
+still be accepted in a consistent group, :meth:`LoopCloser._consistent_group`); for descriptor
+candidates it must not contradict a confident estimate, and a second ICP from a perturbed start
+must reach the same pose (a unique basin).
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ class LoopStats:
     rejected_fitness: int = 0
     rejected_consistency: int = 0
     rejected_free_space: int = 0
+    rejected_heading_sigma: int = 0  # the ICP's rotation σ above max_rotation_sigma_deg: a poorly constrained alignment
     rejected_correlative: int = 0
     correlative_starts: int = 0  # verifications whose ICP started from the correlative search's pose
     skipped_low_gain: int = 0  # spatial candidates not verified: a closure could add too little information
@@ -306,7 +311,7 @@ class LoopCloser:
         if res.fitness < min_fit or res.rmse > c.max_rmse or res.degenerate:
             return None, "rejected_fitness"
         if c.max_rotation_sigma_deg is not None and self._rotation_sigma_deg(res.covariance) > c.max_rotation_sigma_deg:
-            return None, "rejected_fitness"
+            return None, "rejected_heading_sigma"
         T = res.transform
         if self.planar:
             T = G.xytheta_to_matrix(G.matrix_to_xytheta(T))
