@@ -106,6 +106,11 @@ def _moved(d: Array) -> bool:
     return bool(np.abs(d[:, :3, 3]).max() >= 5e-3 or np.abs(G.so3_log(d[:, :3, :3])).max() >= np.radians(0.1))
 
 
+def _sensor_relative(keyframes: list[Keyframe], poses: Array, i: int, j: int) -> Array:
+    """The estimate's ``i_sensor_T_j_sensor`` from the keyframes' ``world_T_base`` *poses*."""
+    return G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ keyframes[j].base_T_sensor
+
+
 class LoopCloser:
     """Finds and verifies loop closures for each new keyframe."""
 
@@ -409,7 +414,8 @@ class LoopCloser:
             # the estimate is right there: the group is an alias (MIT CSAIL: keyframe 892 closed with
             # 272 as estimated while 273–276 offered a group 2.5 m off, one door along).
             self.stats.groups_contradicted += 1
-            self._pending = [lc for lc in self._pending if all(lc is not a for a in accepted)]
+            members = {id(a) for a in accepted}
+            self._pending = [lc for lc in self._pending if id(lc) not in members]
             return []
         self._pending = []
         self.stats.accepted_as_group += len(accepted)
@@ -451,7 +457,7 @@ class LoopCloser:
                 self.stats.skipped_low_gain += 1
                 tied = True
                 continue
-            guess = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor
+            guess = _sensor_relative(keyframes, poses, i, j)
             lc = self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial", bool(far[i]))
             if lc is not None:
                 out.append(lc)
@@ -463,9 +469,8 @@ class LoopCloser:
                     continue
                 self.stats.candidates += 1
                 guess = G.xytheta_to_matrix(0.0, 0.0, yaw)
-                est = G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ kj.base_T_sensor
-                lc = self.verify(keyframes, poses, i, j, guess, None, "descriptor",
-                                 estimate=(est, uncertainty.covariance(i, self.planar)))
+                est = (_sensor_relative(keyframes, poses, i, j), uncertainty.covariance(i, self.planar))
+                lc = self.verify(keyframes, poses, i, j, guess, None, "descriptor", estimate=est)
                 if lc is not None:
                     out.append(lc)
                     break
