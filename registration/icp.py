@@ -44,20 +44,44 @@ class IcpTarget:
         if len(self.points) < 3:
             raise DegenerateInputError(f"target has {len(self.points)} points; ICP needs at least 3")
         self.dim = self.points.shape[1]
-        self.tree = cKDTree(self.points)
+        self._tree: cKDTree | None = None
+        self._grid = None
         self.normal_neighbors = normal_neighbors
         self.workers = workers
         # Normals are computed on demand, point by point, and kept: an alignment needs them only at
         # the target points it matches (a scan against a ten-scan local map: about a tenth).
-        self._normals = np.empty_like(self.points)
+        self._normals = np.empty((len(self.points), self.dim))  # C order: the compiled kernels' layout
         self._have = np.zeros(len(self.points), dtype=bool)
         self._have_all = False
+
+    @property
+    def tree(self) -> cKDTree:
+        """k-d tree of the points (built on first use: compiled 2D alignments search :attr:`grid`)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    @property
+    def grid(self):
+        """2D only: the uniform-grid index of the compiled kernels (:class:`registration.kernels.PointGrid`)."""
+        if self._grid is None:
+            from .kernels import PointGrid
+
+            self._grid = PointGrid(self.points)
+        return self._grid
 
     def normals(self, index: NDArray[np.intp] | None = None) -> Array:
         """Unit PCA normals (smallest-eigenvalue eigenvector of the k-neighbour scatter) of the
         target points *index* (all when None), computed once per point."""
         from .point_to_plane import estimate_normals
 
+        if self.dim == 2:  # compiled grid search, one point at a time (same estimator)
+            from .kernels import normals_2d
+
+            g = self.grid
+            want = np.arange(len(self.points)) if index is None else np.asarray(index, dtype=np.int64)
+            normals_2d(want, self._normals, self._have, g.points, *g.args(), min(self.normal_neighbors, len(self.points)))
+            return self._normals if index is None else self._normals.take(index, axis=0)
         if index is None:
             if not self._have_all:
                 missing = np.flatnonzero(~self._have)
@@ -204,6 +228,19 @@ def _prepare(source: ArrayLike, tgt: IcpTarget, init: ArrayLike | None, config: 
     return S, T
 
 
+def gated_nearest(tgt: IcpTarget, points: Array, gate: float, workers: int = 1) -> NDArray[np.intp]:
+    """Index of the target point nearest to each row of *points*, strictly within *gate* (m), else
+    ``len(tgt.points)`` (as cKDTree reports a miss): the compiled grid search in 2D, the k-d tree in 3D."""
+    if tgt.dim == 2:
+        from .kernels import nearest_within
+
+        g = tgt.grid
+        idx = nearest_within(np.ascontiguousarray(points, dtype=np.float64), g.points, *g.args(), float(gate))
+        idx[idx < 0] = len(tgt.points)
+        return idx
+    return tgt.tree.query(points, k=1, distance_upper_bound=gate, workers=_workers(len(points), workers))[1]
+
+
 def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: IcpConfig, iterations: int = 0,
                        converged: bool = True) -> IcpResult:
     """Correspondences at *gate*, RMSE, covariance and χ² test of a given pose ``T = target_T_source``.
@@ -212,7 +249,7 @@ def evaluate_alignment(S: Array, tgt: IcpTarget, T: Array, gate: float, config: 
     registration (KISS-ICP). *S* is ``(N, d)`` in the source frame (m)."""
     d = tgt.dim
     moved = S @ T[:d, :d].T + T[:d, 3]
-    _, idx = tgt.tree.query(moved, k=1, distance_upper_bound=gate, workers=_workers(len(S), config.workers))
+    idx = gated_nearest(tgt, moved, gate, config.workers)
     return _evaluate(S, tgt, T, moved, idx, gate, config, iterations, converged)
 
 

@@ -19,12 +19,18 @@ from . import geometry as geo
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se3_exp
-from .icp import IcpResult, IcpTarget, _as_target, _evaluate, _prepare, robust_weights
+from .icp import IcpResult, IcpTarget, _as_target, _evaluate, _prepare, gated_nearest, robust_weights
 from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher
 
 Array = NDArray[np.float64]
 
 __all__ = ["PosePrior", "estimate_normals", "icp_point_to_plane"]
+
+#: 2D alignments without a prior run the compiled iterations (registration.kernels); the numpy loop
+#: below is the same algorithm, kept for 3D, for priors and as the reference the tests compare with.
+COMPILED_2D = True
+#: IcpConfig.robust → the compiled loop's code (trimming needs a partial sort: numpy loop)
+_ROBUST_CODES = {"none": 0, "huber": 1, "cauchy": 2}
 
 
 def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -1,
@@ -91,6 +97,8 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     tgt = _as_target(target, config)
     S, T = _prepare(source, tgt, init, config)
     d = tgt.dim
+    if d == 2 and prior is None and COMPILED_2D and config.robust in _ROBUST_CODES:
+        return _icp_plane_2d_compiled(S, tgt, T, config)
     n_tgt = len(tgt.points)
     matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=len(S) >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
@@ -141,6 +149,28 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
         moved = S @ R.T + t
     gate = config.gates[-1]
     return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
+
+
+def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
+    """The 2D iterations above, compiled (:func:`registration.kernels.plane_icp_2d`), then the same evaluation."""
+    from . import kernels
+
+    g = tgt.grid
+    R, t, it, converged, status, stage, pairs = kernels.plane_icp_2d(
+        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
+        config.max_iterations, config.tol_translation, config.tol_rotation, _ROBUST_CODES[config.robust],
+        config.robust_scale, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
+        g.points, *g.args())
+    if status == 1:
+        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: {pairs} pairs within "
+                                   f"{config.gates[stage]} m (need {config.min_inliers})")
+    if status == 2:
+        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations")
+    T = np.eye(4)
+    T[:2, :2], T[:2, 3] = R, t
+    moved = S @ R.T + t
+    gate = config.gates[-1]
+    return _evaluate(S, tgt, T, moved, gated_nearest(tgt, moved, gate), gate, config, it, converged)
 
 
 def _add_prior(H: Array, g: Array, prior: PosePrior, R: Array, t: Array, d: int) -> tuple[Array, Array]:

@@ -174,17 +174,21 @@ def _room_2d(step: float = 0.05) -> np.ndarray:
 _EXACT = IcpConfig(gates=(0.5, 0.2), tol_translation=1e-12, tol_rotation=1e-12, max_iterations=100)
 
 
-def test_prior_of_zero_information_changes_nothing_and_a_stiff_prior_wins():
+def test_prior_of_zero_information_changes_nothing_and_a_stiff_prior_wins(monkeypatch):
     """The MAP step's two limits: a prior of zero information gives the plain point-to-plane result
-    bit for bit; a prior of 10¹² information pins the pose to the prior's mean (1e-6) however well the
-    points say otherwise."""
+    of the same (numpy) loop bit for bit, and the compiled 2D loop's to rounding; a prior of 10¹²
+    information pins the pose to the prior's mean (1e-6) however well the points say otherwise."""
+    from registration import point_to_plane
     from registration.point_to_plane import PosePrior
 
     P = _room_2d()
     T = geo.xytheta_to_matrix(0.12, -0.05, 0.03)
     src = geo.transform_points(geo.inverse(T), P)
+    compiled = icp_point_to_plane(src, P, None, _EXACT)
+    monkeypatch.setattr(point_to_plane, "COMPILED_2D", False)
     plain = icp_point_to_plane(src, P, None, _EXACT)
     assert np.abs(plain.transform - T).max() < 1e-9
+    assert np.abs(compiled.transform - plain.transform).max() < 1e-12
     zero = icp_point_to_plane(src, P, None, _EXACT, prior=PosePrior(np.eye(4), np.zeros((3, 3))))
     np.testing.assert_array_equal(zero.transform, plain.transform)
     Pm = geo.xytheta_to_matrix(0.08, 0.0, 0.01)
