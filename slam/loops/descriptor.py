@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 Array = NDArray[np.float64]
 
@@ -98,44 +97,53 @@ def best_shift(query: Array, candidates: Array) -> tuple[Array, Array]:
 
 
 class DescriptorIndex:
-    """Incremental store of descriptors with ring-key retrieval (rebuilds its k-d tree lazily)."""
+    """Incremental store of descriptors with ring-key retrieval (exact nearest ring keys by brute force:
+    a few thousand places are one (n, rings) distance evaluation, cheaper than rebuilding a k-d tree
+    after every addition)."""
 
     def __init__(self, cfg: PolarDescriptorConfig = PolarDescriptorConfig()) -> None:
         self.cfg = cfg
         self._desc: list[Array] = []
-        self._keys: list[Array] = []
-        self._ids: list[int] = []
-        self._tree: cKDTree | None = None
-        self._tree_size = 0
+        self._keys = np.empty((0, 0))  # ring keys, rows [0, n) used; capacity doubles
+        self._ids = np.empty(0, dtype=np.int64)
+        self._n = 0
 
     def __len__(self) -> int:
-        return len(self._ids)
+        return self._n
 
     def add(self, key_id: int, points: Array) -> Array:
         d = polar_descriptor(points, self.cfg)
+        key = ring_key(d)
+        if self._n == len(self._keys):
+            cap = max(64, 2 * self._n)
+            keys, ids = np.empty((cap, len(key))), np.empty(cap, dtype=np.int64)
+            if self._n:
+                keys[: self._n], ids[: self._n] = self._keys[: self._n], self._ids[: self._n]
+            self._keys, self._ids = keys, ids
         self._desc.append(d)
-        self._keys.append(ring_key(d))
-        self._ids.append(key_id)
+        self._keys[self._n], self._ids[self._n] = key, key_id
+        self._n += 1
         return d
 
     def query(self, desc: Array, k: int = 10, exclude_after: int | None = None) -> list[tuple[int, float, float]]:
         """The *k* nearest stored places by ring key, re-ranked by shift distance.
 
         Returns ``(id, distance, yaw)`` sorted by distance; ids ≥ *exclude_after* are skipped
-        (recent keyframes are not loop closures).
+        (recent keyframes are not loop closures). The ring-key search looks at the 3k nearest of all
+        places and keeps the first 2k not excluded.
         """
-        n = len(self._ids) if exclude_after is None else int(np.searchsorted(self._ids, exclude_after))
+        total = self._n
+        n = total if exclude_after is None else int(np.searchsorted(self._ids[:total], exclude_after))
         if n == 0:
             return []
-        if self._tree is None or self._tree_size != len(self._keys):
-            self._tree = cKDTree(np.asarray(self._keys))
-            self._tree_size = len(self._keys)
-        kk = min(len(self._keys), max(k * 3, k))
-        _, idx = self._tree.query(ring_key(desc), k=kk)
-        idx = np.atleast_1d(idx)
+        kk = min(total, max(k * 3, k))
+        diff = self._keys[:total] - ring_key(desc)
+        d2 = np.einsum("ij,ij->i", diff, diff)
+        idx = np.argpartition(d2, kk - 1)[:kk] if kk < total else np.arange(total)
+        idx = idx[np.lexsort((idx, d2[idx]))]  # nearest first, ties by insertion order (as a k-d tree's)
         idx = idx[(idx < n)][: k * 2]
         if len(idx) == 0:
             return []
         dist, yaw = best_shift(desc, np.asarray([self._desc[i] for i in idx]))
         order = np.argsort(dist)[:k]
-        return [(self._ids[idx[o]], float(dist[o]), float(yaw[o])) for o in order]
+        return [(int(self._ids[idx[o]]), float(dist[o]), float(yaw[o])) for o in order]
