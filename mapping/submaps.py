@@ -81,10 +81,28 @@ class SubmapFuser:
         """Fuse a scan into submap *key*; its pose enters relative to the anchor (anchor_T_base)."""
         sm = self.submaps[key]
         self._unplace(sm)  # its placed contribution is read from the grid about to change
+        grid = sm.mapper.grid
+        if grid.info.dtype != np.float64:  # sealed (see seal): accumulate in full precision again
+            grid.info, grid.prec = grid.info.astype(np.float64), grid.prec.astype(np.float64)
         sm.mapper.update(frame, relative(sm.world_T_anchor, world_T_base))
         if self.hyperparameters is None:  # fitted on the first frame, then shared by all submaps
             self.hyperparameters = sm.mapper.hyp
         sm.scans += 1
+        sm.dirty = True
+
+    def seal(self, key: Hashable) -> None:
+        """Submap *key* will receive no more scans (normally): its grid is stored in float32 from now on.
+
+        Halves the mapping stage's memory (a 24 m submap at 5 cm is 1.8 MB per float64 array; Intel
+        has 255 submaps). Values change by < 1e-7 relative. The submap is taken off the global grid
+        first and re-placed from the float32 values, so what is later subtracted is exactly what was
+        added."""
+        sm = self.submaps[key]
+        grid = sm.mapper.grid
+        if grid.info.dtype == np.float32:
+            return
+        self._unplace(sm)
+        grid.info, grid.prec = grid.info.astype(np.float32), grid.prec.astype(np.float32)
         sm.dirty = True
 
     # ------------------------------------------------------------------------ placement

@@ -134,6 +134,8 @@ class MapBuilder:
             self.fuser = SubmapFuser(self._geometry_around(pose[None, :2, 3]), self.config.params,
                                      submap_half_size=self.config.submap_half_size_m)
         if not self._anchors or self._count_in_current >= self.config.keyframes_per_submap:
+            if self._anchors:
+                self.fuser.seal(self._anchors[-1])
             self.fuser.add_submap(keyframe_id, pose)
             self._anchors.append(keyframe_id)
             self._count_in_current = 0
