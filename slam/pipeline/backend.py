@@ -101,7 +101,8 @@ class PipelineBackend:
     def _new_smoother(self):  # type: ignore[no-untyped-def]
         from slam.backends.gtsam_backend import IncrementalSmoother
 
-        return IncrementalSmoother(self.dim, relinearize_threshold=self.config.isam2_relinearize_threshold)
+        return IncrementalSmoother(self.dim, relinearize_threshold=self.config.isam2_relinearize_threshold,
+                                   factorization=self.config.isam2_factorization)
 
     def _restart_smoother(self) -> None:
         """A fresh iSAM2 holding the whole graph, initialised at its batch LM solution."""
