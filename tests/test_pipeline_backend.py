@@ -63,7 +63,8 @@ def test_zero_rounds_keeps_every_closure():
 
 def test_isam2_failure_restarts_from_the_batch_solution(monkeypatch):
     """An "indeterminant linear system" from iSAM2 (raised once, mid-run) is recovered from: the back end
-    restarts iSAM2 with the whole graph at the batch solution and goes on adding keyframes."""
+    restarts iSAM2 with the whole graph at the batch solution, factoring with QR from then on, and goes
+    on adding keyframes."""
     from slam.backends import gtsam_backend
 
     real_update = gtsam_backend.IncrementalSmoother.update
@@ -88,6 +89,7 @@ def test_isam2_failure_restarts_from_the_batch_solution(monkeypatch):
                 be2.add_odometry(e.i, e.j, e.measurement, np.linalg.inv(e.information))
         be2.update(False)
     assert be2.smoother_restarts == 1 and calls["n"] > 25
+    assert be2._factorization == "qr" and be._factorization == "cholesky"
     # The odometry is exact: the estimate is the truth (up to the anchor at pose 0) after the restart too.
     P = be2.poses
     err = G.relative(truth[0], truth) @ np.linalg.inv(G.relative(P[0], P))

@@ -41,6 +41,7 @@ class PipelineBackend:
         self.solve_time_s = 0.0
         self.pruned_loops = 0
         self.smoother_restarts = 0
+        self._factorization = config.isam2_factorization  # becomes "qr" after a Cholesky failure
         self._smoother = self._new_smoother() if config.kind == "gtsam" else None
 
     @property
@@ -84,7 +85,9 @@ class PipelineBackend:
                 # GTSAM's "indeterminant linear system": iSAM2's incremental factorisation can lose
                 # definiteness numerically (seen on the Freiburg hospital log at keyframe 2350, with
                 # every edge finite and well conditioned). Recover: batch-solve the whole graph and
-                # restart iSAM2 from that solution.
+                # restart iSAM2 from that solution, with QR from now on (it does not square the
+                # condition number; Cholesky failed again 12 times on that log).
+                self._factorization = "qr"
                 self._restart_smoother()
                 loop_added = True
             if loop_added:
@@ -102,7 +105,7 @@ class PipelineBackend:
         from slam.backends.gtsam_backend import IncrementalSmoother
 
         return IncrementalSmoother(self.dim, relinearize_threshold=self.config.isam2_relinearize_threshold,
-                                   factorization=self.config.isam2_factorization)
+                                   factorization=self._factorization)
 
     def _restart_smoother(self) -> None:
         """A fresh iSAM2 holding the whole graph, initialised at its batch LM solution."""
