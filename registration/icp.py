@@ -49,7 +49,8 @@ class IcpTarget:
         self.normal_neighbors = normal_neighbors
         self.workers = workers
         # Normals are computed on demand, point by point, and kept: an alignment needs them only at
-        # the target points it matches (a scan against a ten-scan local map: about a tenth).
+        # the target points it matches (a scan against a ten-scan local map: about a tenth). The
+        # compiled 2D ICP (point_to_plane._icp_plane_2d_compiled) fills these two arrays in place.
         self._normals = np.empty((len(self.points), self.dim))  # C order: the compiled kernels' layout
         self._have = np.zeros(len(self.points), dtype=bool)
         self._have_all = False

@@ -87,8 +87,7 @@ def _nearest(x, y, pts, ox, oy, cell, nx, ny, order, starts, gate):  # pragma: n
     r = 0
     while True:
         for i in range(max(ci - r, 0), min(ci + r, nx - 1) + 1):
-            edge_i = i == ci - r or i == ci + r
-            step = 1 if edge_i else 2 * r
+            edge_i = i == ci - r or i == ci + r  # a full column of ring r, else only its two ends
             j = cj - r
             while j <= cj + r:
                 if 0 <= j < ny:
@@ -100,7 +99,7 @@ def _nearest(x, y, pts, ox, oy, cell, nx, ny, order, starts, gate):  # pragma: n
                         d2 = dx * dx + dy * dy
                         if d2 < best_d2:
                             best_d2, best = d2, p
-                j += step if step > 0 else 1
+                j += 1 if edge_i else 2 * r
         reach = r * cell
         if reach >= gate or (best >= 0 and best_d2 <= reach * reach):
             break
@@ -147,7 +146,7 @@ def _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k):  # pragma: no cover
                                 s -= 1
                             bd[s] = d2
                             bi[s] = o
-                j += 1 if (edge_i or r == 0) else 2 * r
+                j += 1 if edge_i else 2 * r
         reach = r * cell
         if bi[k - 1] >= 0 and bd[k - 1] <= reach * reach:
             break
