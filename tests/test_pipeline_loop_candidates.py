@@ -229,3 +229,59 @@ def test_a_group_contradicted_by_a_nearby_closure_accepted_on_its_own_is_not_acc
         assert closer.stats.groups_contradicted == (expect == 0)
         # Accepted: the pool is emptied. Refused: only the group's members leave it.
         assert closer._pending == ([] if expect else [odd])
+
+
+def test_global_search_looks_only_at_anchor_places_beyond_the_far_search():
+    """Places for the global search: every far_submap_keyframes-th keyframe older than the exclusion
+    window, whose position σ relative to the new keyframe exceeds global_min_sigma_m and whose estimate
+    lies within base + factor·σ (≤ global_max_radius_m). The hospital's return: 45 m off with σ 24 m."""
+    cfg = LoopConfig()
+    closer = LoopCloser(cfg, planar=True)
+    K, j, stride = 400, 399, cfg.far_submap_keyframes
+    poses = np.tile(np.eye(4), (K, 1, 1))
+    var = np.full(K, 1e-4)
+    cases = {  # anchor: (distance from keyframe j (m), σ (m), expected)
+        0: (45.0, 24.0, True),    # the hospital's return
+        25: (45.0, 2.0, False),   # confident estimate: 45 m is out of reach
+        50: (3.0, 0.5, False),    # graph-near: the spatial search's
+        75: (10.0, 3.0, False),   # within the far search (σ below global_min_sigma_m)
+        100: (90.0, 40.0, True),
+        125: (150.0, 80.0, False),  # beyond global_max_radius_m
+    }
+    for i, (d, sd, _) in cases.items():
+        poses[i, 0, 3] = d
+        var[i] = sd**2
+    poses[26, 0, 3], var[26] = 45.0, 24.0**2  # not an anchor
+    poses[390, 0, 3], var[390] = 45.0, 24.0**2  # recent (and not an anchor)
+    poses[375, 0, 3], var[375] = 20.0, 24.0**2  # the youngest anchor older than the exclusion window (≤ 384)
+    unc = NodeUncertainty(var, np.full(K, 1e-4))
+    got = set(closer.global_places(poses, j, unc).tolist())
+    assert got == {i for i, (_, _, ok) in cases.items() if ok} | {375}
+    assert all(i % stride == 0 and i <= j - cfg.exclude_recent_keyframes for i in got)
+    assert closer.global_places(poses, 10, unc).size == 0  # nothing older than the window
+
+
+def test_a_global_closure_is_never_accepted_alone_only_as_a_group_that_agrees():
+    """A global-search closure passing every test is held back (and becomes a hypothesis); three of them
+    from consecutive keyframes that agree with each other — the same 30 m / 20° correction of the
+    estimate — are accepted together; three that disagree are not. ICP is stubbed (3D, no scans)."""
+    K = 40
+    poses = np.array([G.se3_exp([1.0 * k, 0.0, 0.0, 0.0, 0.0, 0.01 * k]) for k in range(K)])
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(K)]
+    correction = G.se3_exp([30.0, -12.0, 0.0, 0.0, 0.0, np.radians(20.0)])
+
+    def run(offsets):
+        closer = LoopCloser(LoopConfig(group_max_drift_fraction=None), planar=False)
+        for j, off in zip((30, 31, 32), offsets):
+            T = correction @ G.relative(poses[0], poses[j]) @ off
+            res = SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
+                                  transform=T, covariance=np.diag([1e-4] * 3 + [1e-6] * 3))
+            closer._align = lambda *a, _r=res, **k: _r  # type: ignore[method-assign]
+            lc, reason = closer._attempt(keyframes, 0, j, None, T, T, None, "global")
+            assert lc is None and reason == "global_pending"
+            assert [(h.i, h.j) for h in closer._hypotheses] == [(0, j)]  # the latest renews the hypothesis
+        return closer._consistent_group(poses, 32)
+
+    agreeing = run([np.eye(4)] * 3)
+    assert sorted(lc.j for lc in agreeing) == [30, 31, 32] and all(lc.source == "global" for lc in agreeing)
+    assert run([np.eye(4), G.se3_exp([1.5, 0.0, 0, 0, 0, 0]), G.se3_exp([0, 0, 0, 0, 0, 0.2])]) == []

@@ -101,6 +101,25 @@ class PipelineBackend:
                 self._since_solve = 0
         self.solve_time_s += time.perf_counter() - t0
 
+    def relocalise(self) -> None:
+        """Re-solve after closures that say the estimate is metres off (a global-search group, see
+        :class:`~slam.pipeline.loop_closure.LoopCloser`): robust kernels weigh a closure by its residual at
+        the current estimate, so a Cauchy-weighted closure 45 m away pulls with ~10⁻⁷ of its weight
+        and iSAM2 stays where it is. A batch solve without kernels first moves the graph onto the
+        closures; the kernelled batch solve from there (and iSAM2 restarted at it) keeps its robustness
+        to the residuals that remain (graduated robustness, cf. Yang et al., "Graduated non-convexity
+        for robust spatial perception", RA-L 2020)."""
+        t0 = time.perf_counter()
+        if self.config.kind == "chordal":
+            self._set_poses(self._solve_chordal(self.poses))
+        else:
+            from slam.backends.gtsam_backend import optimize
+
+            self._set_poses(optimize(self.graph, self.poses, method="lm", use_kernels=False).poses)
+            self._restart_smoother()
+            self._set_poses(self._smoother.estimate()[1])
+        self.solve_time_s += time.perf_counter() - t0
+
     def _new_smoother(self):  # type: ignore[no-untyped-def]
         from slam.backends.gtsam_backend import IncrementalSmoother
 

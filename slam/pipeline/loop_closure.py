@@ -5,7 +5,10 @@ the usual recipe): keyframes whose current estimate lies within a radius of the 
 grows with their position uncertainty relative to it along the graph (:mod:`slam.pipeline.uncertainty`),
 recent keyframes excluded;
 plus, for 2D scans, places whose Scan Context descriptor matches (:mod:`slam.loops.descriptor`),
-which finds revisits the drifted estimate cannot reach.
+which finds revisits the drifted estimate cannot reach; and, when old places lie within the new
+keyframe's uncertainty but beyond the far search, a global search of one of them at a time (its whole
+local map, a wide heading window: Cartographer's global constraint search, Hess et al. 2016 §V),
+whose hits are held as hypotheses and enter the graph only as a consistent group.
 
 Verification: point-to-plane ICP (:func:`registration.point_to_plane.icp_point_to_plane`) of the new
 keyframe's scan against the candidate's local map (the candidate and its ±k neighbouring keyframes
@@ -19,7 +22,9 @@ observed free space (2D), and (4) it is consistent: for spatial candidates the M
 between the ICP result and the estimate, under their relative uncertainty, is small (else it may
 still be accepted in a consistent group, :meth:`LoopCloser._consistent_group`); for descriptor
 candidates it must not contradict a confident estimate, and a second ICP from a perturbed start
-must reach the same pose (a unique basin).
+must reach the same pose (a unique basin); global closures are never accepted alone (see
+``LoopConfig.global_search``), and the back end re-solves without kernels first when a group of them
+is accepted (:meth:`slam.pipeline.backend.PipelineBackend.relocalise`).
 """
 
 from __future__ import annotations
@@ -55,7 +60,7 @@ class LoopClosure:
     covariance: Array
     fitness: float
     rmse: float
-    source: str  # "spatial" or "descriptor"
+    source: str  # "spatial", "descriptor" or "global"
 
 
 @dataclass
@@ -74,6 +79,18 @@ class LoopStats:
     skipped_low_gain: int = 0  # spatial candidates not verified: a closure could add too little information
     accepted_as_group: int = 0  # closures first rejected as inconsistent with the estimate, then accepted as a consistent group
     groups_contradicted: int = 0  # groups not accepted: a closure accepted on its own nearby disagrees
+    global_searches: int = 0  # whole-place searches of places beyond the estimate's reach
+    global_pending: int = 0  # closures of the global search and its hypotheses that passed every test, awaiting a group
+
+
+@dataclass
+class _Hypothesis:
+    """A global-search closure awaiting confirmation: the next keyframes are verified against place *i*
+    from ``i_sensor_T_j_sensor`` composed with the estimate's odometry since keyframe *j*."""
+
+    i: int
+    j: int
+    sensor_T: Array
 
 
 def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 0.1, rel_margin: float = 0.02) -> float:
@@ -130,6 +147,10 @@ class LoopCloser:
         self._cache: dict[tuple[int, int], tuple[Array, IcpTarget]] = {}
         self._pyramids: dict[tuple[int, int], correlative.LikelihoodPyramid] = {}
         self._align = icp if config.icp_method == "point" else icp_point_to_plane
+        self._coarse: dict[tuple[int, int], correlative.LikelihoodPyramid] = {}  # global search fields
+        self._global_turn = 0  # keyframes that could have run a global search
+        self._global_cursor = -1  # last place searched (round robin)
+        self._hypotheses: list[_Hypothesis] = []
 
     # ------------------------------------------------------------------ candidates
     def search_radii(self, uncertainty: NodeUncertainty) -> Array:
@@ -217,6 +238,7 @@ class LoopCloser:
             hit = (rel, IcpTarget(pts, normal_neighbors=8, workers=1))
             self._cache[key] = hit
             self._pyramids.pop(key, None)
+            self._coarse.pop(key, None)
             if len(self._cache) > 512:  # bounded memory: drop the oldest entries
                 for old in list(self._cache)[:128]:
                     del self._cache[old]
@@ -312,7 +334,7 @@ class LoopCloser:
             return None, "rejected_icp"
         if not res.accepted:
             return None, "rejected_chi2"
-        min_fit = c.min_fitness if source == "spatial" else c.descriptor_min_fitness
+        min_fit = c.descriptor_min_fitness if source == "descriptor" else c.min_fitness
         if res.fitness < min_fit or res.rmse > c.max_rmse or res.degenerate:
             return None, "rejected_fitness"
         if c.max_rotation_sigma_deg is not None and self._rotation_sigma_deg(res.covariance) > c.max_rotation_sigma_deg:
@@ -324,7 +346,8 @@ class LoopCloser:
             # Negative information, both ways: neither scan may have points where the other saw free space.
             v1 = free_space_violation(G.transform_points(T, kj.frame.points), ki.frame)
             v2 = free_space_violation(G.transform_points(G.inverse(T), ki.frame.points), kj.frame)
-            if max(v1, v2) > c.max_free_space_violation:
+            if (0.5 * (v1 + v2) > c.global_max_free_space_violation if source == "global"
+                    else max(v1, v2) > c.max_free_space_violation):
                 return None, "rejected_free_space"
         if source == "spatial" and relative_cov is not None:
             if self._mahalanobis2(guess_sensor, relative_cov, T, res.covariance) > c.max_mahalanobis**2 * self.dof:
@@ -338,7 +361,9 @@ class LoopCloser:
             if self._mahalanobis2(estimate[0], estimate[1], T, res.covariance) > c.descriptor_max_mahalanobis**2 * self.dof:
                 return None, "rejected_consistency"
         if source == "descriptor":
-            # Unique basin: restart from a perturbed start and require the same answer.
+            # Unique basin: restart from a perturbed start and require the same answer. (Not for global
+            # closures: against a ±25-keyframe map a start 9° off often settles elsewhere for true
+            # returns — 5 of 7 on the hospital — and their group is the evidence instead.)
             pert = G.xytheta_to_matrix(0.3, -0.3, 0.15) if self.planar else G.se3_exp([0.5, -0.5, 0.0, 0.0, 0.0, 0.1])
             try:
                 res2 = self._align(kj.points, target, start @ pert, self._icp_wide)
@@ -347,7 +372,79 @@ class LoopCloser:
             d = G.relative(res.transform, res2.transform)
             if np.linalg.norm(d[:3, 3]) > 0.05 or np.linalg.norm(G.so3_log(d[:3, :3])) > np.radians(1.0):
                 return None, "rejected_consistency"
+        if source == "global":
+            # Beyond the estimate's reach nothing vouches for it: a group of agreeing ones must.
+            closure = self._closure(keyframes, i, j, T, res, source)
+            self._pending.append(closure)
+            self._hypotheses = [h for h in self._hypotheses if h.i != i] + [_Hypothesis(i, j, T)]
+            return None, "global_pending"
         return self._closure(keyframes, i, j, T, res, source), ""
+
+    # ------------------------------------------------------------------ global search
+    def global_places(self, poses: Array, j: int, uncertainty: NodeUncertainty) -> NDArray[np.int64]:
+        """Places (every ``far_submap_keyframes``-th keyframe, older than the exclusion window) that the
+        new keyframe *j* may be revisiting although the far search cannot reach them: position σ
+        relative to *j* above ``global_min_sigma_m`` and estimate within base + factor·σ (at most
+        ``global_max_radius_m``)."""
+        c = self.config
+        last = j - c.exclude_recent_keyframes
+        if last <= 0:
+            return np.zeros(0, dtype=np.int64)
+        ids = np.arange(0, last, max(1, c.far_submap_keyframes))
+        sd = np.sqrt(uncertainty.position_var[ids])
+        d = np.linalg.norm(poses[ids, :2, 3] - poses[j, :2, 3], axis=1)
+        reach = np.minimum(c.global_max_radius_m, c.search_radius_m + c.global_radius_sigma_factor * sd)
+        return ids[(sd > c.global_min_sigma_m) & (d <= reach)]
+
+    def _global_search(self, keyframes: list[Keyframe], poses: Array, j: int, places: NDArray[np.int64]) -> None:
+        """Search the next of *places* (round robin) whole for keyframe *j*'s scan: every pose over the
+        bounding box of its local map and ±``global_window_deg`` around the estimate's heading, by branch
+        and bound on a ``global_resolution_m`` likelihood field (Hess et al. 2016 §V-C); a hit scoring
+        ``global_min_score`` is verified by ICP (:meth:`_attempt`, source ``"global"``), which keeps it
+        pending as a hypothesis."""
+        c = self.config
+        later = places[places > self._global_cursor]
+        i = int(later[0] if len(later) else places[0])
+        self._global_cursor = i
+        self.stats.global_searches += 1
+        try:
+            target, _ = self._target(keyframes, poses, i, far=True)
+            key = (i, c.far_submap_keyframes)
+            coarse = self._coarse.pop(key, None)
+            if coarse is None:
+                coarse = correlative.LikelihoodPyramid(target.points, c.global_resolution_m, c.global_resolution_m, levels=6)
+            self._coarse[key] = coarse
+            if len(self._coarse) > 32:
+                del self._coarse[next(iter(self._coarse))]
+            lo, hi = target.points[:, :2].min(axis=0), target.points[:, :2].max(axis=0)
+            heading = G.matrix_to_xytheta(_sensor_relative(keyframes, poses, i, j))[2]
+            centre = G.xytheta_to_matrix(*(0.5 * (lo + hi)), heading)
+            pts = keyframes[j].points
+            pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= c.correlative_max_range_m]
+            found = correlative.match(pts, coarse, centre, float(0.5 * (hi - lo).max()),
+                                      float(np.radians(c.global_window_deg)), min_score=c.global_min_score)
+        except DegenerateInputError:
+            self.stats.rejected_icp += 1
+            return
+        if found.score < c.global_min_score:
+            self.stats.rejected_correlative += 1
+            return
+        self.stats.verified += 1
+        _, reason = self._attempt(keyframes, i, j, target, found.transform, found.transform, None, "global")
+        setattr(self.stats, reason, getattr(self.stats, reason) + 1)
+
+    def _follow_hypotheses(self, keyframes: list[Keyframe], poses: Array, j: int, skip: set[int]) -> None:
+        """Verify keyframe *j* against the place of each live hypothesis (younger than the group window),
+        from the hypothesis composed with the estimate's odometry since; closures that pass join the
+        pending ones (and renew their hypothesis)."""
+        c = self.config
+        self._hypotheses = [h for h in self._hypotheses if h.j > j - c.group_window_keyframes]
+        for h in list(self._hypotheses):
+            if h.i in skip:
+                continue
+            self.stats.candidates += 1
+            guess = h.sensor_T @ _sensor_relative(keyframes, poses, h.j, j)
+            self.verify(keyframes, poses, h.i, j, guess, None, "global", far=True)
 
     def _rotation_sigma_deg(self, cov: Array) -> float:
         """Largest rotational standard deviation (°) of an ICP covariance ((x, y, θ) or (ρ, φ))."""
@@ -461,8 +558,13 @@ class LoopCloser:
             lc = self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial", bool(far[i]))
             if lc is not None:
                 out.append(lc)
+        if self._hypotheses:
+            self._follow_hypotheses(keyframes, poses, j, tried)
         self._recent = [lc for lc in self._recent if lc.j > j - c.group_window_keyframes] + out
-        out.extend(self._consistent_group(poses, j))
+        group = self._consistent_group(poses, j)
+        if any(lc.source == "global" for lc in group):
+            self._hypotheses = []
+        out.extend(group)
         if not out and not tied:
             for i, yaw in self.descriptor_candidates(kj):
                 if any(abs(i - t) <= c.submap_keyframes for t in tried):
@@ -474,5 +576,11 @@ class LoopCloser:
                 if lc is not None:
                     out.append(lc)
                     break
+        if not out and not tied and self.planar and c.global_search:
+            places = self.global_places(poses, j, uncertainty)
+            if len(places):
+                self._global_turn += 1
+                if self._global_turn % c.global_every_keyframes == 0:
+                    self._global_search(keyframes, poses, j, places)
         self.remember(kj)
         return out

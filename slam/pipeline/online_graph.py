@@ -30,8 +30,10 @@ class OnlineGraph:
         self.backend = PipelineBackend(backend, loops, planar)
         self.loops: list[LoopClosure] = []
         self.planar = planar
-        # Every edge's covariance: each keyframe's uncertainty relative to the new one widens its search radius.
-        self.uncertainty = RelativeUncertainty(planar)
+        # Every edge's covariance: each keyframe's uncertainty relative to the new one widens its search radius
+        # (tracked up to 10 m σ, or as far as the global search looks).
+        reach = loops.global_max_radius_m if (planar and loops.global_search) else 0.0
+        self.uncertainty = RelativeUncertainty(planar, limit_m2=max(100.0, reach**2))
         self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
 
     def add(self, keyframes: list[Keyframe], edge: OdometryEdge | None, wheel: WheelEdge | None) -> list[LoopClosure]:
@@ -58,7 +60,10 @@ class OnlineGraph:
             be.add_loop(lc)
             self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
         self.loops.extend(new)
-        be.update(loop_added=bool(new))
+        if any(lc.source == "global" for lc in new):
+            be.relocalise()  # a group of closures beyond the estimate's reach: move the graph onto them
+        else:
+            be.update(loop_added=bool(new))
         self.times["loop_closure_s"] += t2 - t1
         self.times["backend_s"] += (t1 - t0) + (time.perf_counter() - t2)
         return new
