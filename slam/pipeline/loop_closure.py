@@ -128,6 +128,19 @@ def _sensor_relative(keyframes: list[Keyframe], poses: Array, i: int, j: int) ->
     return G.inverse(poses[i] @ keyframes[i].base_T_sensor) @ poses[j] @ keyframes[j].base_T_sensor
 
 
+def _cached_pyramid(cache: dict[tuple[int, int], correlative.LikelihoodPyramid], key: tuple[int, int],
+                    points: Array, resolution: float, levels: int, capacity: int) -> correlative.LikelihoodPyramid:
+    """The likelihood pyramid (σ = cell size) of *points* under *key* in *cache*, built when missing; the
+    cache keeps the *capacity* most recently used (dicts keep insertion order: most recent last)."""
+    pyramid = cache.pop(key, None)
+    if pyramid is None:
+        pyramid = correlative.LikelihoodPyramid(points, resolution, resolution, levels=levels)
+    cache[key] = pyramid
+    if len(cache) > capacity:
+        del cache[next(iter(cache))]
+    return pyramid
+
+
 class LoopCloser:
     """Finds and verifies loop closures for each new keyframe."""
 
@@ -244,17 +257,11 @@ class LoopCloser:
                     del self._cache[old]
         if not (self.planar and c.correlative):
             return hit[1], None
-        pyramid = self._pyramids.pop(key, None)
-        if pyramid is None:
-            res = c.correlative_resolution_m
-            # Levels for the usual window: a wider (graph-far) search only starts from more top-level
-            # blocks, while deeper levels would pad every grid by 2^levels cells (51 m for ±15 m).
-            w = int(np.ceil(max(c.correlative_window_m, c.descriptor_window_m) / res))
-            pyramid = correlative.LikelihoodPyramid(hit[1].points, res, res, levels=int(np.ceil(np.log2(2 * w + 1))))
-        self._pyramids[key] = pyramid  # most recently used last
-        if len(self._pyramids) > 64:
-            del self._pyramids[next(iter(self._pyramids))]
-        return hit[1], pyramid
+        res = c.correlative_resolution_m
+        # Levels for the usual window: a wider (graph-far) search only starts from more top-level
+        # blocks, while deeper levels would pad every grid by 2^levels cells (51 m for ±15 m).
+        w = int(np.ceil(max(c.correlative_window_m, c.descriptor_window_m) / res))
+        return hit[1], _cached_pyramid(self._pyramids, key, hit[1].points, res, int(np.ceil(np.log2(2 * w + 1))), 64)
 
     def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
                relative_cov: Array | None, source: str, far: bool = False,
@@ -409,13 +416,8 @@ class LoopCloser:
         self.stats.global_searches += 1
         try:
             target, _ = self._target(keyframes, poses, i, far=True)
-            key = (i, c.far_submap_keyframes)
-            coarse = self._coarse.pop(key, None)
-            if coarse is None:
-                coarse = correlative.LikelihoodPyramid(target.points, c.global_resolution_m, c.global_resolution_m, levels=6)
-            self._coarse[key] = coarse
-            if len(self._coarse) > 32:
-                del self._coarse[next(iter(self._coarse))]
+            coarse = _cached_pyramid(self._coarse, (i, c.far_submap_keyframes), target.points,
+                                     c.global_resolution_m, 6, 32)
             lo, hi = target.points[:, :2].min(axis=0), target.points[:, :2].max(axis=0)
             heading = G.matrix_to_xytheta(_sensor_relative(keyframes, poses, i, j))[2]
             centre = G.xytheta_to_matrix(*(0.5 * (lo + hi)), heading)
