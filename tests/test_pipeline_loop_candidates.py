@@ -96,10 +96,12 @@ def test_closures_that_agree_with_each_other_but_not_the_drifted_estimate_are_ac
     rng = np.random.default_rng(4)
     est, closures = _return_after_drift(rng, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
     closer = LoopCloser(LoopConfig(), planar=True)
+    D = LoopConfig().group_delay_keyframes
     closer._pending = closures[:2]
-    assert closer._consistent_group(est, 31) == []
+    assert closer._consistent_group(est, 31 + D) == []
     closer._pending = closures[:3]
-    group = closer._consistent_group(est, 32)
+    assert closer._consistent_group(est, 32 + D - 1) == []  # the newest member is not group_delay_keyframes old yet
+    group = closer._consistent_group(est, 32 + D)
     assert sorted(lc.j for lc in group) == [30, 31, 32]
     assert closer._pending == [] and closer.stats.accepted_as_group == 3
 
@@ -113,7 +115,28 @@ def test_closures_that_disagree_with_each_other_are_not_accepted():
         lc.measurement = lc.measurement @ G.xytheta_to_matrix(0.5 * k, 0.0, 0.0)
     closer = LoopCloser(LoopConfig(), planar=True)
     closer._pending = closures[:3]
-    assert closer._consistent_group(est, 32) == []
+    assert closer._consistent_group(est, 32 + closer.config.group_delay_keyframes) == []
+
+
+def test_a_group_waits_so_that_a_later_closure_accepted_on_its_own_can_contradict_it():
+    """MIT CSAIL's alias: keyframes 30–32 offer a group (the drifted return) while the next keyframe, 33, closes on
+    its own with old keyframe 3 exactly as the estimate has it. Without the delay the group is accepted at 32,
+    before 33 is seen; with it the group is still pending at 33 and refused at 35. Without keyframe 33's closure
+    the same group is accepted at 35."""
+    from slam.pipeline.loop_closure import LoopClosure
+
+    est, closures = _return_after_drift(np.random.default_rng(4), G.xytheta_to_matrix(2.0, -0.5, np.radians(12)))
+    alone = LoopClosure(3, 33, G.relative(est[3], est[33]), np.eye(3) * 1e-4, 0.9, 0.02, "spatial")
+    eager = LoopCloser(LoopConfig(group_delay_keyframes=0), planar=True)
+    eager._pending = closures[:3]
+    assert len(eager._consistent_group(est, 32)) == 3
+    for contradicted in (True, False):
+        closer = LoopCloser(LoopConfig(group_delay_keyframes=3), planar=True)
+        closer._pending = closures[:3]
+        assert closer._consistent_group(est, 32) == [] and closer._consistent_group(est, 33) == []
+        closer._recent = [alone] if contradicted else []
+        assert len(closer._consistent_group(est, 35)) == (0 if contradicted else 3)
+        assert closer.stats.groups_contradicted == int(contradicted)
 
 
 def test_information_gain_is_the_gaussian_mutual_information_at_the_covariance_floor():
@@ -208,7 +231,7 @@ def test_a_group_implying_implausible_drift_is_not_accepted():
         drift = [closer._implied_drift(est, lc) for lc in closures[:3]]
         assert all((0.02 < d < 0.05) if loop else (d > 0.1) for d in drift), drift
         closer._pending = closures[:3]
-        assert len(closer._consistent_group(est, 32)) == expect
+        assert len(closer._consistent_group(est, 32 + closer.config.group_delay_keyframes)) == expect
 
 
 def test_a_group_contradicted_by_a_nearby_closure_accepted_on_its_own_is_not_accepted():
@@ -225,7 +248,7 @@ def test_a_group_contradicted_by_a_nearby_closure_accepted_on_its_own_is_not_acc
         closer = LoopCloser(LoopConfig(), planar=True)
         closer._pending = closures[:4]
         closer._recent = [LoopClosure(i_alone, 31, G.relative(est[i_alone], est[31]), np.eye(3) * 1e-4, 0.9, 0.02, "spatial")]
-        assert len(closer._consistent_group(est, 33)) == expect
+        assert len(closer._consistent_group(est, 33 + closer.config.group_delay_keyframes)) == expect
         assert closer.stats.groups_contradicted == (expect == 0)
         # Accepted: the pool is emptied. Refused: only the group's members leave it.
         assert closer._pending == ([] if expect else [odd])
@@ -280,7 +303,7 @@ def test_a_global_closure_is_never_accepted_alone_only_as_a_group_that_agrees():
             lc, reason = closer._attempt(keyframes, 0, j, None, T, T, None, "global")
             assert lc is None and reason == "global_pending"
             assert [(h.i, h.j) for h in closer._hypotheses] == [(0, j)]  # the latest renews the hypothesis
-        return closer._consistent_group(poses, 32)
+        return closer._consistent_group(poses, 32 + closer.config.group_delay_keyframes)
 
     agreeing = run([np.eye(4)] * 3)
     assert sorted(lc.j for lc in agreeing) == [30, 31, 32] and all(lc.source == "global" for lc in agreeing)

@@ -472,7 +472,8 @@ class LoopCloser:
     def _consistent_group(self, poses: Array, j: int) -> list[LoopClosure]:
         """Closures that failed only the consistency test, accepted together when ``group_min_size`` of
         them, from as many different recent keyframes, agree with each other though not with the
-        estimate (the estimate drifted, not the matches: MIT CSAIL's return to its start). Only closures
+        estimate (the estimate drifted, not the matches: MIT CSAIL's return to its start), once the newest
+        of them is ``group_delay_keyframes`` old. Only closures
         implying a plausible drift rate (``group_max_drift_fraction``) count: a corridor whose doors repeat
         yields whole groups of mutually consistent aliases, but metres off after a few metres of travel.
 
@@ -485,9 +486,10 @@ class LoopCloser:
         window of a member's."""
         c = self.config
         self._pending = [lc for lc in self._pending if lc.j > j - c.group_window_keyframes]
-        if c.group_min_size <= 0 or len({lc.j for lc in self._pending}) < c.group_min_size:
+        # Only members at least group_delay_keyframes old: closures accepted alone meanwhile can contradict them.
+        P = [lc for lc in self._pending if lc.j <= j - c.group_delay_keyframes]
+        if c.group_min_size <= 0 or len({lc.j for lc in P}) < c.group_min_size:
             return []
-        P = self._pending
         if c.group_max_drift_fraction is not None:
             P = [lc for lc in P if self._implied_drift(poses, lc) <= c.group_max_drift_fraction]
             if len({lc.j for lc in P}) < c.group_min_size:
