@@ -1,4 +1,5 @@
-"""Front end: the χ² gate that keeps wheel-odometry edges out of the graph when they contradict registration."""
+"""Front end: the χ² gate that keeps lumpy wheel-odometry edges out of the graph, the a-posteriori edge
+covariance, and the online calibration of the wheel noise model."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from scipy.stats import chi2
 
 from registration import geometry as G
 from slam.pipeline.config import SlamConfig
-from slam.pipeline.frontend import FrontEnd, OdometryEdge, WheelEdge
+from slam.pipeline.frontend import FrontEnd, OdometryEdge
+from slam.pipeline.wheel_calibration import WheelNoiseCalibration
 
 
 def _front(probability: float | None = 0.999) -> FrontEnd:
@@ -29,15 +31,15 @@ def test_wheel_gate_is_the_chi2_quantile_of_the_combined_covariance(scale, kept)
         delta = np.sqrt(scale * chi2.ppf(0.999, 3) * (var_e + var_w))
         T = G.xytheta_to_matrix(0.4, 0.1, 0.3)
         edge = OdometryEdge(0, 1, T, Ce)
-        wheel = WheelEdge(0, 1, T @ G.xytheta_to_matrix(0.0, 0.0, delta), Cw)
-        assert _front()._consistent(edge, wheel) is kept
+        fe = _front()
+        assert fe._consistent(fe._innovation(edge, T @ G.xytheta_to_matrix(0.0, 0.0, delta)), Ce, Cw) is kept
 
 
 def test_wheel_gate_off_keeps_every_edge():
     edge = OdometryEdge(0, 1, np.eye(4), np.eye(3) * 1e-6)
-    wheel = WheelEdge(0, 1, G.xytheta_to_matrix(0.0, 0.0, 1.0), np.eye(3) * 1e-6)
-    assert _front(None)._consistent(edge, wheel)
-    assert not _front()._consistent(edge, wheel)
+    d = _front()._innovation(edge, G.xytheta_to_matrix(0.0, 0.0, 1.0))
+    assert _front(None)._consistent(d, edge.covariance, np.eye(3) * 1e-6)
+    assert not _front()._consistent(d, edge.covariance, np.eye(3) * 1e-6)
 
 
 def test_lumpy_wheel_odometry_edges_are_dropped_and_the_rest_kept():
@@ -57,3 +59,98 @@ def test_lumpy_wheel_odometry_edges_are_dropped_and_the_rest_kept():
     assert len(fe.wheel_edges) == 10
     for w in fe.wheel_edges:  # every kept wheel edge is a steady 8° step
         assert np.degrees(G.matrix_to_xytheta(w.measurement)[2]) == pytest.approx(8.0, abs=1e-9)
+
+
+def _keyframe_pair(odom_step: float):
+    """Two keyframes 0.4 m apart along x whose wheel odometry says *odom_step* metres."""
+    from types import SimpleNamespace
+    prev = SimpleNamespace(id=0, frame=SimpleNamespace(odom=np.eye(4)))
+    kf = SimpleNamespace(id=1, frame=SimpleNamespace(odom=G.xytheta_to_matrix(odom_step, 0.0, 0.0)))
+    return prev, kf
+
+
+@pytest.mark.parametrize("lumpy", [False, True])
+def test_a_wheel_edge_that_fails_the_gate_is_dropped_only_where_the_wheels_were_lumpy(lumpy):
+    """Registration 0.40 m, smooth wheels 0.20 m (a slide along a corridor): far outside the gate. Over smooth
+    wheels the edge stays (the registration slid) but is no calibration sample; over lumpy ones it goes."""
+    fe = _front()
+    prev, kf = _keyframe_pair(0.2)
+    edge = OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-6]))
+    fe._lumpy_since_kf = lumpy
+    wheel = fe._wheel_edge(prev, kf, edge, edge.covariance)
+    assert (wheel is None) is lumpy
+    assert fe.wheel_edges_dropped == int(lumpy)
+    if not lumpy:
+        assert fe.wheel_calibration is not None and fe.wheel_calibration.samples == 0
+        assert G.matrix_to_xytheta(wheel.measurement)[0] == pytest.approx(0.2)
+
+
+def test_the_wheel_edge_carries_the_calibrated_model_once_enough_edges_agree():
+    """Wheels that agree with the registration to 2 mm on 0.4 m steps (σ_model = 4.1 cm): after the calibration's
+    minimum of samples the wheel covariance shrinks by the fitted scale², and the gate itself is unchanged."""
+    fe = _front()
+    rng = np.random.default_rng(5)
+    Ce = np.diag([1e-6, 1e-6, 1e-8])
+    covs = []
+    for _ in range(60):
+        noise = rng.normal(0.0, [0.002, 0.002, 0.0005])
+        prev, kf = _keyframe_pair(0.4)
+        kf.frame.odom = G.xytheta_to_matrix(0.4 + noise[0], noise[1], noise[2])
+        wheel = fe._wheel_edge(prev, kf, OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), Ce), Ce)
+        covs.append((wheel.covariance, fe._wheel_covariance(wheel.measurement)))
+    assert np.allclose(*covs[0])  # before min_edges: the model as configured
+    cal = fe.wheel_calibration
+    assert cal.samples == 60 and cal.scale_translation < 0.1 and cal.scale_rotation < 0.2
+    last, model = covs[-1]
+    assert np.allclose(np.diag(last), np.diag(model) * np.array([cal.scale_translation] * 2 + [cal.scale_rotation]) ** 2)
+
+
+@pytest.mark.parametrize("k_t, k_r", [(0.4, 0.1), (1.0, 1.0), (3.0, 0.5)])
+def test_wheel_calibration_recovers_the_scale_the_innovations_were_drawn_with(k_t, k_r):
+    """Innovations drawn from N(0, Σ_reg + diag(k_t, k_t, k_r)² Σ_model) with random registration covariances: the
+    moment fit returns k_t and k_r within 8 % (2000 samples)."""
+    rng = np.random.default_rng(11)
+    cal = WheelNoiseCalibration(2)
+    s = np.array([k_t, k_t, k_r])
+    for _ in range(2000):
+        L = rng.normal(size=(3, 3)) * np.array([0.01, 0.01, 0.002])[:, None]
+        A = L @ L.T + np.diag([1e-6, 1e-6, 1e-8])
+        d_step = rng.uniform(0.1, 0.5)
+        B = np.diag([(0.1 * d_step) ** 2] * 2 + [(0.08 * d_step) ** 2])
+        cal.add(rng.multivariate_normal(np.zeros(3), A + B * np.outer(s, s)), A, B)
+    assert cal.scale_translation == pytest.approx(k_t, rel=0.08)
+    assert cal.scale_rotation == pytest.approx(k_r, rel=0.08)
+
+
+def test_wheel_calibration_waits_for_its_samples_and_stays_within_its_bounds():
+    cal = WheelNoiseCalibration(2, min_samples=10, bounds=(0.05, 10.0))
+    A, B = np.eye(3) * 1e-4, np.eye(3) * 1e-4
+    for _ in range(9):
+        cal.add(np.zeros(3), A, B)
+    assert (cal.scale_translation, cal.scale_rotation) == (1.0, 1.0)
+    cal.add(np.zeros(3), A, B)  # perfect agreement: the registration explains everything
+    assert (cal.scale_translation, cal.scale_rotation) == (0.05, 0.05)
+    cal = WheelNoiseCalibration(2, min_samples=10, bounds=(0.05, 10.0))
+    for _ in range(10):
+        cal.add(np.full(3, 10.0), A, B)  # 1000 σ apart: capped
+    assert (cal.scale_translation, cal.scale_rotation) == (10.0, 10.0)
+    assert np.allclose(cal.calibrated(B), B * 100.0)
+
+
+@pytest.mark.parametrize("noise", [0.005, 0.07])
+def test_edge_covariance_grows_with_the_scans_own_residuals(noise):
+    """Keyframe edge of a scan against itself plus range noise σ_n: at σ_n below the a-priori σ (2 cm) the
+    covariance is the a-priori one; at 7 cm (the Freiburg hospital's median) it is scaled by σ̂²/σ² ≈ (7/2)²."""
+    from types import SimpleNamespace
+    rng = np.random.default_rng(2)
+    ang = np.linspace(-1.5, 1.5, 400)
+    room = np.c_[4.0 * np.cos(ang), 3.0 * np.sin(ang) + 0.5 * np.cos(3 * ang)]  # a curved wall, well conditioned
+    prev = SimpleNamespace(points=room, base_T_sensor=np.eye(4))
+    kf = SimpleNamespace(points=room + rng.normal(0.0, noise, room.shape), base_T_sensor=np.eye(4))
+    fe = _front()
+    posterior, prior = fe._edge_covariance(prev, kf, np.eye(4))
+    ratio = float(np.trace(posterior) / np.trace(prior))
+    if noise < 0.02:
+        assert ratio == 1.0
+    else:
+        assert 0.6 * (noise / 0.02) ** 2 < ratio < 1.4 * (noise / 0.02) ** 2

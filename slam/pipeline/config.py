@@ -42,6 +42,7 @@ class OdometryStageConfig(_Model):
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
     # at the odometry's relative pose (registration.covariance), with this residual σ and gate.
     edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
+    edge_sigma_from_residuals: bool = Field(True, description="scale the edge covariance by max(1, σ̂²/σ²), σ̂ the scan's own residual σ (the a-posteriori variance factor; median σ̂: Freiburg hospital 7 cm, Intel and MIT CSAIL 2.7 cm). Replays of the recorded front ends, together with the wheel calibration and the gate as before: hospital 0.1179 → 0.1102 m, Intel 0.0166 → 0.0164 m, CSAIL 0.0269 m either way")
     edge_gate_m: float = Field(0.3, gt=0)
     # Noise floor added to the odometry covariance per keyframe edge: σ² = a + b·distance (translation)
     # and c + d·|angle| (rotation). Registration covariances treat the map as exact and are
@@ -57,7 +58,11 @@ class OdometryStageConfig(_Model):
     wheel_sigma_per_m: float = Field(0.1, gt=0)
     wheel_sigma_rad_per_m: float = Field(0.08, gt=0)
     wheel_sigma_rad_per_rad: float = Field(0.1, gt=0)
+    wheel_sigma_m_per_rad: float = Field(0.15, ge=0, description="translation σ per radian turned (a turn in place moves the base a little: Intel's wheel edges that disagreed with the registration were turns of 17° in place (median) off by 0.029 m sideways, σ ≈ 0.15 m/rad; with 0 the model gave them 1 mm)")
     wheel_gate_probability: float | None = Field(0.999, gt=0, lt=1, description="a wheel edge whose disagreement with the registration edge exceeds this χ² quantile (Mahalanobis, both covariances) is left out: wheel odometry logged in lumps says 0° over a keyframe the robot turned 40° in (MIT CSAIL); None keeps every wheel edge")
+    wheel_gate_lumpy_only: bool = Field(True, description="... but only when the wheels were lumpy in the interval (the ICP odometry took its constant-velocity start); over smooth wheels the registration slid, and the wheel edge stays. Recorded with the calibration and wheel_sigma_m_per_rad = 0.15: Freiburg hospital 0.1102 → 0.1077 m (its corridor slides keep their wheel edges), Intel 0.0164 → 0.0151 m, MIT CSAIL 0.0269 m; without the turn term Intel's in-place turns became wheel edges 1 mm sure of the base's position (0.0267 m)")
+    wheel_calibration: bool = Field(True, description="scale the wheel model per block (translation, rotation) online so that the wheel-vs-registration disagreement has its expected χ² mean (slam.pipeline.wheel_calibration); the fitted scales are in summary.json (odometry_stats). The hospital's wheels fit ~0.4 / 0.13 of the model, Intel's and MIT CSAIL's ~0.7 / 1")
+    wheel_calibration_min_edges: int = Field(50, ge=1, description="wheel edges before the calibration starts (until then the model as configured)")
 
 
 class LoopConfig(_Model):

@@ -37,9 +37,13 @@ class FrontEndSummary:
 
 
 def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
-    return FrontEndSummary(front.track, odometry_s,
-                           {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
-                            "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped})
+    stats = {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
+             "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped}
+    cal = front.wheel_calibration
+    if cal is not None:
+        stats |= {"wheel_noise_scale_translation": round(cal.scale_translation, 4),
+                  "wheel_noise_scale_rotation": round(cal.scale_rotation, 4), "wheel_calibration_samples": cal.samples}
+    return FrontEndSummary(front.track, odometry_s, stats)
 
 
 def _new_front_end(config: SlamConfig, planar: bool) -> FrontEnd:

@@ -1,0 +1,100 @@
+"""Online calibration of the wheel-odometry noise model against the scan registration.
+
+The wheel edges' covariance comes from a generic model (σ_xy = a·d, σ_θ = b·d + c·|Δθ|, config
+``odometry.wheel_sigma_*``), but robots differ: the Freiburg hospital's wheels agree with its scan
+registration ~7× better in heading than Intel's or MIT CSAIL's. Each keyframe interval gives one
+innovation, the disagreement ``δ = Log(registration⁻¹ · wheels)`` with covariance
+``Σ_reg + Σ_wheel``; if both covariances are right, ``δᵀ (Σ_reg + Σ_wheel)⁻¹ δ`` averages the
+dimension. With the registration covariance fixed (it is estimated from its own residuals), the
+wheel model is scaled per block — translation by ``k_t``, rotation by ``k_r`` — so that this mean
+holds over the edges seen so far: a method-of-moments fit of the normalised innovation squared,
+as in innovation-based adaptive estimation (Mehra, "Approaches to adaptive filtering", IEEE TAC
+17(5), 1972, §IV). The mean, not the median, of the statistic: the error is heavy-tailed (lumps,
+slides), and the median fitted ~2× smaller scales, which over-trusted Intel's wheels (relation
+error 0.0164 → 0.0185 m).
+
+Only edges that passed the wheel gate are samples: a gated lump is a fault, not noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+class WheelNoiseCalibration:
+    """Running estimate of the scales ``(k_t, k_r)`` of the wheel noise model.
+
+    Args:
+        n_translation: translation dimensions of the tangent vector (2 planar, 3 in 3D); the rest
+            are rotation. Covariances are in the ``(translation, rotation)`` tangent order.
+        min_samples: below this many innovations the scales stay 1 (the model as configured).
+        every: re-estimate after this many new innovations (the fit is O(samples)).
+        bounds: the scales are kept within these (a calibration, not a switch that turns the
+            wheels off or makes them exact).
+    """
+
+    def __init__(self, n_translation: int, min_samples: int = 50, every: int = 25,
+                 bounds: tuple[float, float] = (0.05, 10.0)) -> None:
+        self.n_translation = n_translation
+        self.min_samples = min_samples
+        self.every = every
+        self.bounds = bounds
+        self.scale_translation = 1.0
+        self.scale_rotation = 1.0
+        self._innovations: list[Array] = []
+        self._registration: list[Array] = []
+        self._model: list[Array] = []
+        self._since_fit = 0
+
+    @property
+    def samples(self) -> int:
+        return len(self._innovations)
+
+    def add(self, innovation: Array, registration_cov: Array, model_cov: Array) -> None:
+        """One keyframe interval: the disagreement *innovation* (tangent vector), the registration
+        edge's covariance and the *uncalibrated* wheel-model covariance over it."""
+        self._innovations.append(np.asarray(innovation, dtype=float))
+        self._registration.append(np.asarray(registration_cov, dtype=float))
+        self._model.append(np.asarray(model_cov, dtype=float))
+        self._since_fit += 1
+        if self.samples >= self.min_samples and (self._since_fit >= self.every or self.samples == self.min_samples):
+            self._fit()
+
+    def calibrated(self, model_cov: Array) -> Array:
+        """The wheel-model covariance scaled by the current estimate (k² per block)."""
+        n = self.n_translation
+        s = np.r_[np.full(n, self.scale_translation), np.full(len(model_cov) - n, self.scale_rotation)]
+        return model_cov * np.outer(s, s)
+
+    def _fit(self) -> None:
+        self._since_fit = 0
+        d = np.array(self._innovations)
+        A = np.array(self._registration)
+        B = np.array(self._model)
+        n = self.n_translation
+        self.scale_translation = self._solve(d[:, :n], A[:, :n, :n], B[:, :n, :n])
+        self.scale_rotation = self._solve(d[:, n:], A[:, n:, n:], B[:, n:, n:])
+
+    def _solve(self, d: Array, A: Array, B: Array) -> float:
+        """k with mean dᵀ(A + k²B)⁻¹d = dim, by bisection on log k (the mean falls as k grows)."""
+        dim = d.shape[1]
+
+        def excess(k: float) -> float:
+            x = np.linalg.solve(A + k * k * B, d[..., None])[..., 0]
+            return float(np.mean(np.einsum("ni,ni->n", d, x))) - dim
+
+        if excess(self.bounds[0]) <= 0:
+            return float(self.bounds[0])
+        if excess(self.bounds[1]) >= 0:
+            return float(self.bounds[1])
+        lo, hi = np.log(self.bounds[0]), np.log(self.bounds[1])
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            if excess(np.exp(mid)) > 0:
+                lo = mid
+            else:
+                hi = mid
+        return float(np.exp(0.5 * (lo + hi)))
