@@ -284,6 +284,26 @@ def test_global_search_looks_only_at_anchor_places_beyond_the_far_search():
     assert closer.global_places(poses, 10, unc).size == 0  # nothing older than the window
 
 
+def test_a_spatial_closure_the_estimate_cannot_vouch_for_is_held_like_a_global_one():
+    """A spatial candidate whose position σ relative to the new keyframe exceeds global_min_sigma_m passes the
+    consistency test with almost any alignment; its closure is held as a global hypothesis instead of being
+    accepted alone. The same closure at σ below the limit, agreeing with the estimate, is accepted."""
+    poses = np.array([G.se3_exp([1.0 * k, 0.0, 0.0, 0.0, 0.0, 0.0]) for k in range(40)])
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(40)]
+    T = G.relative(poses[0], poses[30])
+    res = SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
+                          transform=T, covariance=np.diag([1e-4] * 3 + [1e-6] * 3))
+    for sigma, accepted in ((1.0, True), (5.0, False)):
+        closer = LoopCloser(LoopConfig(), planar=False)
+        closer._align = lambda *a, **k: res  # type: ignore[method-assign]
+        rel_cov = np.diag([sigma**2 / 3] * 3 + [1e-4] * 3)  # trace of the position block = σ²
+        lc, reason = closer._attempt(keyframes, 0, 30, None, T, T, rel_cov, "spatial")
+        assert (lc is not None) == accepted
+        if not accepted:
+            assert reason == "global_pending" and [(h.i, h.j) for h in closer._hypotheses] == [(0, 30)]
+            assert [p.source for p in closer._pending] == ["global"]
+
+
 def test_a_global_closure_is_never_accepted_alone_only_as_a_group_that_agrees():
     """A global-search closure passing every test is held back (and becomes a hypothesis); three of them
     from consecutive keyframes that agree with each other — the same 30 m / 20° correction of the
