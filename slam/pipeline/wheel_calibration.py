@@ -31,7 +31,8 @@ class WheelNoiseCalibration:
         n_translation: translation dimensions of the tangent vector (2 planar, 3 in 3D); the rest
             are rotation. Covariances are in the ``(translation, rotation)`` tangent order.
         min_samples: below this many innovations the scales stay 1 (the model as configured).
-        every: re-estimate after this many new innovations (the fit is O(samples)).
+        every: re-estimate after this many new innovations, or after 10 % more, whichever is
+            later (each fit is O(samples); the estimate settles as they grow).
         bounds: the scales are kept within these (a calibration, not a switch that turns the
             wheels off or makes them exact).
     """
