@@ -453,17 +453,12 @@ class LoopCloser:
         pending ones (and renew their hypothesis)."""
         c = self.config
         self._hypotheses = [h for h in self._hypotheses if h.j > j - c.group_window_keyframes]
-        last = j - c.exclude_recent_keyframes
-        step = max(1, c.far_submap_keyframes)
         for h in list(self._hypotheses):
-            hj_T_j = h.sensor_T @ _sensor_relative(keyframes, poses, h.j, j)
-            # The place itself and, for a second opinion, its neighbouring places along the old pass.
-            for i in (h.i, h.i - step, h.i + step) if c.global_min_places > 1 else (h.i,):
-                if i in skip or not 0 <= i < last:
-                    continue
-                self.stats.candidates += 1
-                guess = _sensor_relative(keyframes, poses, i, h.i) @ hj_T_j
-                self.verify(keyframes, poses, i, j, guess, None, "global", far=True)
+            if h.i in skip:
+                continue
+            self.stats.candidates += 1
+            guess = h.sensor_T @ _sensor_relative(keyframes, poses, h.j, j)
+            self.verify(keyframes, poses, h.i, j, guess, None, "global", far=True)
 
     def _rotation_sigma_deg(self, cov: Array) -> float:
         """Largest rotational standard deviation (°) of an ICP covariance ((x, y, θ) or (ρ, φ))."""
@@ -526,8 +521,6 @@ class LoopCloser:
         if len({P[k].j for k in group}) < c.group_min_size:
             return []
         accepted = [P[k] for k in group]
-        if not self._enough_places(accepted):
-            return []  # wait: the next keyframes may confirm it against a neighbouring place
         w = c.group_window_keyframes
         if any(abs(r.i - a.i) <= w and not self._agree(poses, a, r) for a in accepted for r in self._recent):
             # A closure accepted on its own between the same stretches of old and new keyframes says
@@ -540,21 +533,6 @@ class LoopCloser:
         self._pending = []
         self.stats.accepted_as_group += len(accepted)
         return accepted
-
-    def _enough_places(self, group: list[LoopClosure]) -> bool:
-        """A group with global closures must reach ``global_min_places`` old places at least half a
-        place apart (``far_submap_keyframes`` / 2): consecutive keyframes matched to one look-alike
-        place agree with each other as well as true returns do (Freiburg hospital at ICP tolerance 4e-4:
-        seven, 51 m from the truth), but the alias rarely continues into the next place."""
-        c = self.config
-        places = sorted({lc.i for lc in group if lc.source == "global"})
-        if not places or c.global_min_places <= 1:
-            return True
-        distinct = [places[0]]
-        for i in places[1:]:
-            if i - distinct[-1] >= max(1, c.far_submap_keyframes // 2):
-                distinct.append(i)
-        return len(distinct) >= c.global_min_places
 
     def _agree(self, poses: Array, A: LoopClosure, B: LoopClosure) -> bool:
         """Whether closures *A* and *B* agree: their cycle through the estimate's relative poses of the two
