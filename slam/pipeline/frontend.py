@@ -182,7 +182,8 @@ class FrontEnd:
         return m2 <= float(chi2.ppf(p, self._dof))
 
     def _wheel_edge(self, prev: Keyframe, kf: Keyframe, edge: OdometryEdge, prior_cov: Array) -> WheelEdge | None:
-        """The wheel edge over keyframes *prev* → *kf*, or None when the gate leaves it out.
+        """The wheel edge over keyframes *prev* → *kf*, or None when the gate leaves it out; *prior_cov* is
+        the registration edge's covariance at the a-priori σ, floor included (the gate's).
 
         Left out when it fails the χ² test against the registration edge and the wheels were lumpy
         in the interval (``wheel_gate_lumpy_only``; the odometry took its constant-velocity start at
@@ -193,7 +194,7 @@ class FrontEnd:
         wrel = G.relative(prev.frame.odom, kf.frame.odom)
         model = self._wheel_covariance(wrel)
         d = self._innovation(edge, wrel)
-        consistent = self._consistent(d, prior_cov + self._floor(edge.measurement), model)
+        consistent = self._consistent(d, prior_cov, model)
         if not consistent and (self._lumpy_since_kf or not c.wheel_gate_lumpy_only):
             self.wheel_edges_dropped += 1
             return None
@@ -239,9 +240,10 @@ class FrontEnd:
                 if covs is None:
                     cov = self._cov_since_kf if self._cov_since_kf is not None else np.zeros((self._dof, self._dof))
                     covs = (cov, cov)
-                edge = OdometryEdge(prev.id, kf.id, rel, covs[0] + self._floor(rel))
+                floor = self._floor(rel)
+                edge = OdometryEdge(prev.id, kf.id, rel, covs[0] + floor)
                 if c.wheel_edges and prev.frame.odom is not None and frame.odom is not None:
-                    wheel = self._wheel_edge(prev, kf, edge, covs[1])
+                    wheel = self._wheel_edge(prev, kf, edge, covs[1] + floor)
                     if wheel is not None:
                         self.wheel_edges.append(wheel)
             if self._keep:
