@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry as G
+from . import kernels  # compiled loops: the per-point gathers are the search's whole cost
 from .errors import DegenerateInputError
 
 Array = NDArray[np.float64]
@@ -55,18 +56,19 @@ class LikelihoodPyramid:
         cells = np.floor((pts - self.origin) / resolution).astype(np.int64)
         shape = tuple(int(s) for s in cells.max(axis=0) + pad + 1)
         # Stored as bytes (likelihood × 255): the pyramid of a 30 m local map at 5 cm is ~2.5 MB.
-        self.grids = [likelihood_field(cells, shape, resolution, sigma)]
+        # One (levels + 1, H, W) array: level h is grids[h].
+        self.grids = np.empty((self.levels + 1,) + shape, dtype=np.uint8)
+        self.grids[0] = likelihood_field(cells, shape, resolution, sigma)
         for h in range(1, self.levels + 1):
-            prev, s = self.grids[-1], 2 ** (h - 1)
-            g = prev.copy()
+            prev, g, s = self.grids[h - 1], self.grids[h], 2 ** (h - 1)
+            g[:] = prev
             g[:-s, :] = np.maximum(g[:-s, :], prev[s:, :])
             g[:, :-s] = np.maximum(g[:, :-s], g[:, s:])
-            self.grids.append(g)
 
     @property
     def shape(self) -> tuple[int, int]:
         """Cells along x and y (every level has the same shape)."""
-        return self.grids[0].shape  # type: ignore[return-value]
+        return self.grids.shape[1:]  # type: ignore[return-value]
 
     def cells(self, points: Array) -> NDArray[np.int64]:
         """Integer cell coordinates (…, 2) of points (…, 2) in the target frame."""
@@ -76,8 +78,6 @@ class LikelihoodPyramid:
                          offsets: NDArray[np.int64]) -> NDArray[np.float64]:
         """Mean over the scan's points of the level-*level* grid at ``cells[rot[c]] + offsets[c]`` for each
         candidate c: the exact score at level 0, an upper bound for the 2^level block of offsets above."""
-        from . import kernels  # compiled loop: the per-point gather is the search's whole cost
-
         return kernels.score_candidates(self.grids[level], cells, np.ascontiguousarray(rot, dtype=np.int64),
                                         np.ascontiguousarray(offsets, dtype=np.int64))
 
@@ -107,19 +107,24 @@ def likelihood_field(cells: NDArray[np.int64], shape: tuple[int, int], resolutio
 
 def angular_step(points: Array, resolution: float) -> float:
     """Rotation step that moves the farthest point (95th percentile range) by at most one cell (Hess et al. 2016, Eq. 7)."""
-    r = float(np.percentile(np.hypot(points[:, 0], points[:, 1]), 95))
+    rng = np.hypot(points[:, 0], points[:, 1])
+    # np.percentile's linear interpolation, from a partial sort (the full call costs ~0.1 ms, ×8000 on Intel)
+    pos = 0.95 * (len(rng) - 1)
+    lo = int(pos)
+    hi = min(lo + 1, len(rng) - 1)
+    part = np.partition(rng, (lo, hi))
+    r = float(part[lo] + (pos - lo) * (part[hi] - part[lo]))
     r = max(r, 2.0 * resolution)
     return float(np.arccos(1.0 - resolution**2 / (2.0 * r**2)))
 
 
 def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
-          max_candidates: int = 200_000, greedy_descents: int = 4, min_score: float = 0.0,
-          min_gain: float = 0.0) -> CorrelativeResult:
+          min_score: float = 0.0, min_gain: float = 0.0) -> CorrelativeResult:
     """Best ``target_T_scan`` within ±*window_m* (x and y) and ±*window_rad* of the planar 4×4 *guess*.
 
-    Exact over the discretised window: breadth-first branch and bound; the lower bound is the best
-    score reached by greedy descents from the most promising blocks of each level, and blocks whose
-    max-pooled bound cannot beat it are dropped. *max_candidates* bounds the memory of one gather.
+    Exact over the discretised window: depth-first branch and bound, children best first (Hess et
+    al. 2016, Algorithm 3), compiled (:func:`registration.kernels.branch_and_bound`); a block is
+    expanded only when its max-pooled bound beats the best score found so far.
     *min_score* starts the bound there (Cartographer's ``min_score``, Hess et al. 2016 §V-C): blocks
     that cannot reach it are never expanded; when no pose in the window scores above it (nor the
     guess), the result is the guess with its score, which is then below *min_score*.
@@ -140,64 +145,16 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
     rotated = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
     cells = pyramid.cells(rotated).astype(np.int32)  # (R, N, 2); int32 halves the gathers' index traffic
     w = int(np.ceil(window_m / res))
-
     top = pyramid.levels
-    while top > 0 and 2 ** (top - 1) >= 2 * w + 1:
+    while top > 0 and 2 ** (top - 1) >= 2 * w + 1:  # a level below already spans the window in one block
         top -= 1
-    h = 2**top
-    grid = np.arange(-w, w + 1, h)
-    ox, oy = np.meshgrid(grid, grid, indexing="ij")
-    base = np.stack([ox.ravel(), oy.ravel()], axis=1)
-    rot = np.repeat(np.arange(len(thetas)), len(base))
-    off = np.tile(base, (len(thetas), 1))
 
     guess_score = float(pyramid.score_candidates(0, cells, np.array([k]), np.zeros((1, 2), np.int64))[0])
-    children = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.int64)
-
-    def descend(level: int, r: NDArray[np.int64], o: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """Greedy descents from blocks (r[m], o[m]) at *level* (> 0) along the best child to level 0:
-        reachable scores (lower bounds) and their offsets."""
-        for lv in range(level - 1, -1, -1):
-            o_c = o[:, None, :] + children[None] * 2**lv  # (m, 4, 2)
-            sc = pyramid.score_candidates(lv, cells, np.repeat(r, 4), o_c.reshape(-1, 2)).reshape(-1, 4)
-            sc[~(o_c <= w).all(axis=2)] = -1.0
-            pick = np.argmax(sc, axis=1)
-            o = o_c[np.arange(len(o)), pick]
-        return sc[np.arange(len(o)), pick], o
-
     floor = max(guess_score, min_score)
     if min_gain > 0 and guess_score >= min_score:
         floor = guess_score + min_gain - 1e-12  # a maximum of exactly guess + min_gain still counts
-    best, best_rot, best_off = floor, k, np.zeros(2, np.int64)
-    bounds = pyramid.score_candidates(top, cells, rot, off)
-    chunk = max(1, max_candidates // 4)
-    # Breadth-first branch and bound; at each level the most promising blocks are first descended
-    # greedily so that the lower bound is tight before the level is pruned.
-    for level in range(top, -1, -1):
-        if level < top:
-            off = (off[:, None, :] + children[None] * 2**level).reshape(-1, 2)
-            rot = np.repeat(rot, 4)
-            keep = (off <= w).all(axis=1)
-            off, rot = off[keep], rot[keep]
-            bounds = np.concatenate([pyramid.score_candidates(level, cells, rot[i:i + chunk], off[i:i + chunk])
-                                     for i in range(0, len(off), chunk)])
-        if level > 0:
-            top_m = np.argsort(bounds)[::-1][:greedy_descents]
-            top_m = top_m[bounds[top_m] > best]
-            if len(top_m):
-                sc, o = descend(level, rot[top_m], off[top_m])
-                m = int(np.argmax(sc))
-                if sc[m] > best:
-                    best, best_rot, best_off = float(sc[m]), int(rot[top_m[m]]), o[m]
-        keep = bounds > best
-        off, rot, bounds = off[keep], rot[keep], bounds[keep]
-        if len(off) == 0:
-            break
-        if level == 0:
-            i = int(np.argmax(bounds))
-            best, best_rot, best_off = float(bounds[i]), int(rot[i]), off[i]
-
-    if best_rot == k and not best_off.any():  # nothing beat the guess (or min_score)
+    best, best_rot, ox, oy = kernels.branch_and_bound(pyramid.grids, cells, top, w, floor, k, 0, 0)
+    if best_rot == k and ox == 0 and oy == 0:  # nothing beat the guess (or min_score)
         return CorrelativeResult(np.asarray(guess, dtype=np.float64).copy(), guess_score, guess_score)
-    T = G.xytheta_to_matrix(x0 + best_off[0] * res, y0 + best_off[1] * res, thetas[best_rot])
-    return CorrelativeResult(T, best, guess_score)
+    T = G.xytheta_to_matrix(x0 + ox * res, y0 + oy * res, thetas[best_rot])
+    return CorrelativeResult(T, float(best), guess_score)
