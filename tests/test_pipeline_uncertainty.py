@@ -85,3 +85,46 @@ def test_keyframes_beyond_the_limit_or_unconnected_carry_the_limit():
     alone = RelativeUncertainty(True, limit_m2=9.0).from_node(2, np.zeros((3, 2)))
     np.testing.assert_array_equal(alone.position_var, [9.0, 9.0, 0.0])
     assert alone.covariance(0, planar=True).shape == (3, 3)
+
+
+def test_matches_a_plain_dijkstra_whatever_order_the_edges_arrive_in():
+    """Edges added in any order (closures of older keyframes accepted late, either direction, parallel
+    ones): the variances equal a textbook Dijkstra over the lever-arm weights, keeping for each pair its
+    most certain edge, and the rotation variance is summed along the same path."""
+    import heapq
+
+    rng = np.random.default_rng(11)
+    K = 60
+    pos = np.cumsum(rng.normal(size=(K, 2)), axis=0)
+    edges = [(k, k + 1) for k in range(K - 1)] + [(k, k + 1) for k in range(0, K - 1, 3)]
+    edges += [tuple(rng.choice(K, 2, replace=False)) for _ in range(40)]
+    order = rng.permutation(len(edges))
+    covs = [np.diag(np.r_[rng.uniform(1e-4, 1e-2, 2), rng.uniform(1e-6, 1e-4)]) for _ in edges]
+    u = RelativeUncertainty(True, limit_m2=1e6)
+    for e in order:
+        u.add_edge(int(edges[e][0]), int(edges[e][1]), covs[e])
+    j = K - 1
+    got = u.from_node(j, pos)
+    best: dict[tuple[int, int], tuple[float, float]] = {}
+    for (a, b), C in zip(edges, covs):
+        w = np.trace(C[:2, :2]) + C[2, 2] * np.sum((0.5 * (pos[a] + pos[b]) - pos[j]) ** 2) + 1e-12
+        key = (min(a, b), max(a, b))
+        if key not in best or w < best[key][0]:
+            best[key] = (w, C[2, 2])
+    nbrs: dict[int, list[tuple[int, float, float]]] = {k: [] for k in range(K)}
+    for (a, b), (w, vr) in best.items():
+        nbrs[a].append((b, w, vr))
+        nbrs[b].append((a, w, vr))
+    dist, rot = np.full(K, np.inf), np.zeros(K)
+    dist[j] = 0.0
+    heap = [(0.0, j)]
+    while heap:
+        d, a = heapq.heappop(heap)
+        if d > dist[a]:
+            continue
+        for b, w, vr in nbrs[a]:
+            if d + w < dist[b]:
+                dist[b], rot[b] = d + w, rot[a] + vr
+                heapq.heappush(heap, (dist[b], b))
+    np.testing.assert_allclose(got.position_var, dist, rtol=1e-12)
+    np.testing.assert_allclose(got.rotation_var, rot, rtol=1e-9, atol=1e-15)

@@ -31,6 +31,8 @@ Array = NDArray[np.float64]
 
 __all__ = ["RelativeUncertainty", "NodeUncertainty"]
 
+_PAIR_BASE = 1 << 31  # keyframe ids stay below it
+
 
 @dataclass(frozen=True)
 class NodeUncertainty:
@@ -59,21 +61,36 @@ class RelativeUncertainty:
     def __init__(self, planar: bool, limit_m2: float = 100.0) -> None:
         self.planar = planar
         self.limit_m2 = float(limit_m2)
-        # Edges in arrays that double when full (read every keyframe: no list-to-array copy each time).
+        # Edges in arrays that double when full (read every keyframe: no list-to-array copy each time),
+        # kept sorted by keyframe pair (newer end, then older end): a new keyframe's edges go in at or
+        # near the end, so inserting in place is cheap and the search needs no sort.
         self._n = 0
-        self._ends = np.zeros((64, 2), dtype=np.int64)
+        self._keys = np.zeros(64, dtype=np.int64)  # _key(older, newer) of each edge, ascending
+        self._ends = np.zeros((64, 2), dtype=np.int64)  # (older, newer) keyframe of each edge
         self._var = np.zeros((64, 2))  # translation, rotation variance (traces)
+
+    @staticmethod
+    def _key(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
+        """One sort key per keyframe pair (older *lo*, newer *hi*): row-major in (hi, lo)."""
+        return hi * _PAIR_BASE + lo
 
     def add_edge(self, i: int, j: int, covariance: Array) -> None:
         """An edge between keyframes *i* and *j* with its ``(dof, dof)`` covariance (any frame: traces only)."""
         d = 2 if self.planar else 3
         C = np.asarray(covariance, dtype=float)
-        if self._n == len(self._ends):
+        n = self._n
+        if n == len(self._ends):
+            self._keys = np.concatenate([self._keys, np.zeros_like(self._keys)])
             self._ends = np.concatenate([self._ends, np.zeros_like(self._ends)])
             self._var = np.concatenate([self._var, np.zeros_like(self._var)])
-        self._ends[self._n] = (i, j)
-        self._var[self._n] = (np.trace(C[:d, :d]), np.trace(C[d:, d:]))
-        self._n += 1
+        lo, hi = min(i, j), max(i, j)
+        key = hi * _PAIR_BASE + lo
+        at = n if n == 0 or key >= self._keys[n - 1] else int(np.searchsorted(self._keys[:n], key, side="right"))
+        for a in (self._keys, self._ends, self._var):  # shift the (few) later edges up by one
+            a[at + 1:n + 1] = a[at:n].copy()
+        self._keys[at], self._ends[at] = key, (lo, hi)
+        self._var[at] = (np.trace(C[:d, :d]), np.trace(C[d:, d:]))
+        self._n = n + 1
 
     def from_node(self, j: int, positions: Array) -> NodeUncertainty:
         """Uncertainty of every keyframe ``0 … len(positions) − 1`` relative to keyframe *j*.
@@ -85,20 +102,26 @@ class RelativeUncertainty:
             pv = np.full(K, limit)
             pv[j] = 0.0
             return NodeUncertainty(pv, np.where(pv > 0, limit, 0.0))
-        a, b = self._ends[: self._n, 0], self._ends[: self._n, 1]
+        lo, hi = self._ends[: self._n, 0], self._ends[: self._n, 1]
         vt, vr = self._var[: self._n, 0], self._var[: self._n, 1]
-        centre = 0.5 * (positions[a] + positions[b])
+        centre = 0.5 * (positions[lo] + positions[hi])
         lever2 = np.sum((centre - positions[j]) ** 2, axis=1)
         w = vt + vr * lever2 + 1e-12  # strictly positive: csgraph drops explicit zeros
-        # Parallel edges (odometry and wheel, repeated closures): keep the most certain one.
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        pair = lo * K + hi  # one sort key per keyframe pair
-        order = np.lexsort((w, pair))
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = pair[order][1:] != pair[order][:-1]
-        keep = order[first]
-        lo, hi, w, vr, pair = lo[keep], hi[keep], w[keep], vr[keep], pair[keep]  # pair is sorted now
-        graph = csr_matrix((w, (lo, hi)), shape=(K, K))
+        # Parallel edges (odometry and wheel, repeated closures): keep the most certain one. The edges
+        # are sorted by pair, so each pair's edges are one run: its minimum by reduceat, no sort.
+        pair = self._keys[: self._n]
+        new_run = np.ones(self._n, dtype=bool)
+        new_run[1:] = pair[1:] != pair[:-1]
+        starts = np.flatnonzero(new_run)
+        run = np.cumsum(new_run) - 1
+        is_min = np.flatnonzero(w == np.minimum.reduceat(w, starts)[run])
+        first = np.ones(len(is_min), dtype=bool)
+        first[1:] = run[is_min][1:] != run[is_min][:-1]
+        keep = is_min[first]  # the first edge of each run at its minimum
+        lo, hi, w, vr, pair = lo[keep], hi[keep], w[keep], vr[keep], pair[keep]  # pair is sorted
+        # Row = newer end, column = older end: already the CSR order, built without a sort.
+        indptr = np.searchsorted(hi, np.arange(K + 1))
+        graph = csr_matrix((w, lo, indptr), shape=(K, K))
         dist, pred = dijkstra(graph, directed=False, indices=j, return_predecessors=True, limit=limit)
         reached = np.isfinite(dist)
         pos_var = np.where(reached, dist, limit)
@@ -108,7 +131,7 @@ class RelativeUncertainty:
         idx = np.flatnonzero(has)
         acc = np.zeros(K)
         p = pred[idx]
-        acc[idx] = vr[np.searchsorted(pair, np.minimum(p, idx) * K + np.maximum(p, idx))]
+        acc[idx] = vr[np.searchsorted(pair, self._key(np.minimum(p, idx), np.maximum(p, idx)))]
         up = np.where(has, pred, j)
         while True:
             nxt = up[up]
