@@ -48,6 +48,7 @@ __all__ = [
     "so3_exp",
     "so3_log",
     "rotation_angle",
+    "rotation_angles",
     "se3_exp",
     "se3_log",
     "se2_exp",
@@ -233,6 +234,14 @@ def rotation_angle(R: ArrayLike) -> float:
     R = np.asarray(R, dtype=float)
     s = 0.5 * math.sqrt((R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2)
     return math.atan2(s, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
+
+
+def rotation_angles(R: ArrayLike) -> Array:
+    """Angles (rad, in [0, π]) of a stack ``(..., 3, 3)`` of rotations: :func:`rotation_angle` vectorised."""
+    R = np.asarray(R, dtype=float)
+    s = 0.5 * np.sqrt((R[..., 2, 1] - R[..., 1, 2]) ** 2 + (R[..., 0, 2] - R[..., 2, 0]) ** 2
+                      + (R[..., 1, 0] - R[..., 0, 1]) ** 2)
+    return np.arctan2(s, 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0))
 
 
 def so3_log(R: ArrayLike) -> Array:

@@ -87,6 +87,8 @@ def test_rotation_angle_is_the_norm_of_the_rotation_vector(rng):
     w *= (ang / np.linalg.norm(w, axis=1))[:, None]
     got = np.array([G.rotation_angle(R) for R in G.so3_exp(w)])
     np.testing.assert_allclose(got, ang, atol=1e-12, rtol=1e-10)
+    np.testing.assert_allclose(G.rotation_angles(G.so3_exp(w)), ang, atol=1e-12, rtol=1e-10)
+    assert G.rotation_angles(G.so3_exp(w).reshape(10, 30, 3, 3)).shape == (10, 30)
 
 
 def test_se3_exp_log_round_trip_and_matches_gtsam(rng):

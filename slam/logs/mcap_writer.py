@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from registration import geometry as geo
 from registration.atomic import atomic_path
@@ -43,6 +43,8 @@ from .ros_msgs import (
     stamp_to_ns,
     stamp_to_time,
 )
+
+Array = NDArray[np.float64]
 
 __all__ = ["McapLogWriter"]
 
@@ -152,15 +154,19 @@ class McapLogWriter:
         T = np.asarray(pose, dtype=float)
         if T.shape != (4, 4):
             raise GeometryError(f"pose must be 4×4, got shape {T.shape}")
-        t, q = geo.pose_to_quat(T)
+        return self._pose_msg(*geo.pose_to_quat(T))
+
+    def _pose_msg(self, t: Array, q: Array) -> Any:
+        """``geometry_msgs/Pose`` from a translation (3,) and a quaternion (4,) x, y, z, w."""
         P = self._T
         return P["geometry_msgs/msg/Pose"](
             position=P["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
             orientation=P["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
         )
 
-    def _transform(self, pose: ArrayLike) -> Any:
-        p = self._pose(pose)
+    def _transform(self, t: Array, q: Array) -> Any:
+        """``geometry_msgs/Transform`` from a translation (3,) and a quaternion (4,) x, y, z, w."""
+        p = self._pose_msg(t, q)
         P = self._T
         return P["geometry_msgs/msg/Transform"](
             translation=P["geometry_msgs/msg/Vector3"](x=p.position.x, y=p.position.y, z=p.position.z), rotation=p.orientation
@@ -287,7 +293,13 @@ class McapLogWriter:
     def write_tf(self, stamp: float, transforms: Sequence[tuple[str, str, ArrayLike]], static: bool = False) -> None:
         """``tf2_msgs/TFMessage`` on ``/tf`` (or ``/tf_static``): each ``(parent, child, parent_T_child)``."""
         TS = self._T["geometry_msgs/msg/TransformStamped"]
-        items = [TS(header=self._header(stamp, parent), child_frame_id=str(child), transform=self._transform(T)) for parent, child, T in transforms]
+        Ts = [np.asarray(T, dtype=float) for _, _, T in transforms]
+        for T in Ts:
+            if T.shape != (4, 4):
+                raise GeometryError(f"pose must be 4×4, got shape {T.shape}")
+        ts, qs = geo.pose_to_quat(np.stack(Ts)) if Ts else ((), ())  # one vectorised conversion for the message
+        items = [TS(header=self._header(stamp, parent), child_frame_id=str(child), transform=self._transform(t, q))
+                 for (parent, child, _), t, q in zip(transforms, ts, qs)]
         msg = self._T[TF_MESSAGE](transforms=items)
         self.write_message("/tf_static" if static else "/tf", TF_MESSAGE, msg, stamp)
 
@@ -298,7 +310,8 @@ class McapLogWriter:
         if Ps.ndim != 3 or Ps.shape[1:] != (4, 4) or Ps.shape[0] != st.shape[0]:
             raise GeometryError(f"path needs (N, 4, 4) poses for N stamps, got {Ps.shape} and {st.shape}")
         PS = self._T[POSE_STAMPED]
-        items = [PS(header=self._header(t, frame_id), pose=self._pose(T)) for t, T in zip(st, Ps)]
+        ts, qs = geo.pose_to_quat(Ps)  # one vectorised conversion, not one per pose
+        items = [PS(header=self._header(s, frame_id), pose=self._pose_msg(t, q)) for s, t, q in zip(st, ts, qs)]
         msg = self._T[PATH](header=self._header(stamp, frame_id), poses=items)
         self.write_message(topic, PATH, msg, stamp)
 

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import geometry as G
-from slam.graph.posegraph import PoseGraph, RobustKernel
+from slam.graph.posegraph import KINDS, PoseGraph, RobustKernel
 
 from .config import BackendConfig, LoopConfig
 from .loop_closure import LoopClosure
@@ -152,15 +152,14 @@ class PipelineBackend:
     def _violated_loops(self, poses: Array) -> list[int]:
         """Indices of loop edges the solution violates by more than the pruning thresholds."""
         c = self.loop_config
-        bad = []
-        for e, edge in enumerate(self.graph.edges()):
-            if edge.kind != "loop":
-                continue
-            err = G.relative(edge.measurement, G.relative(poses[self.graph.index_of(edge.i)], poses[self.graph.index_of(edge.j)]))
-            if (np.linalg.norm(err[:3, 3]) > c.prune_translation_m
-                    or np.degrees(np.linalg.norm(G.so3_log(err[:3, :3]))) > c.prune_rotation_deg):
-                bad.append(e)
-        return bad
+        a = self.graph.edge_arrays()
+        loops = np.flatnonzero(a.kinds == KINDS.index("loop"))
+        if len(loops) == 0:
+            return []
+        err = G.relative(a.measurements[loops], G.relative(poses[a.ii[loops]], poses[a.jj[loops]]))
+        bad = ((np.linalg.norm(err[:, :3, 3], axis=1) > c.prune_translation_m)
+               | (np.degrees(G.rotation_angles(err[:, :3, :3])) > c.prune_rotation_deg))
+        return [int(e) for e in loops[bad]]
 
     def finish(self) -> Array:
         """Final batch solve, then up to ``prune_rounds`` rounds of: drop the closures the solution

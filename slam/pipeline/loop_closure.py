@@ -120,7 +120,7 @@ def free_space_violation(points_in_sensor: Array, frame: Frame, margin: float = 
 
 def _moved(d: Array) -> bool:
     """Whether any of the relative poses *d* (K, 4, 4) differs from identity by more than 5 mm or 0.1°."""
-    return bool(np.abs(d[:, :3, 3]).max() >= 5e-3 or np.abs(G.so3_log(d[:, :3, :3])).max() >= np.radians(0.1))
+    return bool(np.abs(d[:, :3, 3]).max() >= 5e-3 or G.rotation_angles(d[:, :3, :3]).max() >= np.radians(0.1))
 
 
 def _sensor_relative(keyframes: list[Keyframe], poses: Array, i: int, j: int) -> Array:
