@@ -328,3 +328,57 @@ def test_a_global_closure_is_never_accepted_alone_only_as_a_group_that_agrees():
     agreeing = run([np.eye(4)] * 3)
     assert sorted(lc.j for lc in agreeing) == [30, 31, 32] and all(lc.source == "global" for lc in agreeing)
     assert run([np.eye(4), G.se3_exp([1.5, 0.0, 0, 0, 0, 0]), G.se3_exp([0, 0, 0, 0, 0, 0.2])]) == []
+
+
+def test_a_keyframe_that_closed_nothing_retries_old_opposite_views_against_their_larger_map_and_holds_them():
+    """When no closure came out, the spatial candidates seen from the opposite direction (relative heading
+    beyond 90°) that are old enough are verified again against their ±far_submap_keyframes map, with
+    hold=True (a closure only in a group); same-direction, too-recent or graph-far ones are not, and nothing
+    is retried when a closure was accepted."""
+    K = 400
+    pos = np.zeros((K, 2))
+    pos[:, 0] = 100.0 + np.arange(K)  # elsewhere, well apart
+    heading = np.zeros(K)
+    for k, (x, th) in {10: (0.2, np.pi), 20: (0.4, 0.1), 350: (0.6, np.pi), 30: (0.8, np.pi)}.items():
+        pos[k] = (x, 0.0)
+        heading[k] = th
+    pos[399] = 0.0
+    poses = np.array([G.xytheta_to_matrix(x, y, th) for (x, y), th in zip(pos, heading)])
+    var = np.full(K, 1e-4)
+    var[30] = 4.0  # graph-far: the far search already used its large map
+    unc = NodeUncertainty(var, np.full(K, 1e-4))
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 2))) for k in range(K)]
+    for accept_first, expect in ((False, [(10, True)]), (True, [])):
+        closer = LoopCloser(LoopConfig(use_descriptor=False, global_search=False), planar=True)
+        calls: list[tuple[int, bool, bool]] = []
+
+        def verify(kfs, P, i, j, guess, cov, source, far=False, estimate=None, hold=False, _acc=accept_first):
+            calls.append((i, bool(far), bool(hold)))
+            return SimpleNamespace(i=i, j=j, source=source) if (_acc and not hold and i == 20) else None
+
+        closer.verify = verify  # type: ignore[method-assign]
+        closer._consistent_group = lambda P, j: []  # type: ignore[method-assign]
+        closer.detect(keyframes, poses, 399, unc)
+        first = [c for c in calls if not c[2]]
+        assert sorted(i for i, _, _ in first) == [10, 20, 30, 350]  # the usual pass, each candidate once
+        assert [(i, far) for i, far, hold in calls if hold] == expect  # 20 same way, 350 recent, 30 graph-far
+
+
+def test_a_held_closure_waits_for_a_group_and_an_inconsistent_one_is_not_held():
+    """verify(hold=True): a closure passing every test is pending, not returned or counted as accepted; one
+    failing the consistency test with the estimate is dropped, not pooled (the retry vouches for nothing
+    the estimate rules out)."""
+    poses = np.array([G.se3_exp([1.0 * k, 0.0, 0.0, 0.0, 0.0, 0.0]) for k in range(40)])
+    keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(40)]
+    T = G.relative(poses[0], poses[30])
+    rel_cov = np.diag([0.1**2] * 3 + [1e-4] * 3)
+    for found, pooled in ((T, True), (T @ G.se3_exp([3.0, 0, 0, 0, 0, 0]), False)):
+        res = SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
+                              transform=found, covariance=np.diag([1e-4] * 3 + [1e-6] * 3))
+        closer = LoopCloser(LoopConfig(), planar=False)
+        closer._align = lambda *a, _r=res, **k: _r  # type: ignore[method-assign]
+        closer._target = lambda *a, **k: (None, None)  # type: ignore[method-assign]
+        assert closer.verify(keyframes, poses, 0, 30, T, rel_cov, "spatial", far=True, hold=True) is None
+        assert closer.stats.accepted == 0
+        assert [(lc.i, lc.j) for lc in closer._pending] == ([(0, 30)] if pooled else [])
+        assert closer.stats.opposite_pending == int(pooled) and closer.stats.rejected_consistency == int(not pooled)

@@ -81,6 +81,7 @@ class LoopStats:
     groups_contradicted: int = 0  # groups not accepted: a closure accepted on its own nearby disagrees
     global_searches: int = 0  # whole-place searches of places beyond the estimate's reach
     global_pending: int = 0  # closures of the global search and its hypotheses that passed every test, awaiting a group
+    opposite_pending: int = 0  # closures of the opposite-heading retry that passed every test, awaiting a group
 
 
 @dataclass
@@ -265,7 +266,7 @@ class LoopCloser:
 
     def verify(self, keyframes: list[Keyframe], poses: Array, i: int, j: int, guess_sensor: Array,
                relative_cov: Array | None, source: str, far: bool = False,
-               estimate: tuple[Array, Array] | None = None) -> LoopClosure | None:
+               estimate: tuple[Array, Array] | None = None, hold: bool = False) -> LoopClosure | None:
         """Align keyframe *j*'s scan onto *i*'s local map from ``guess_sensor = i_sensor_T_j_sensor``.
 
         In 2D with the correlative search on, ICP starts from the best pose of a branch-and-bound
@@ -280,6 +281,8 @@ class LoopCloser:
         matched against its larger local map and must reach ``far_min_correlative_score``. A descriptor
         candidate (whose *guess_sensor* is the descriptor's heading only) may carry the *estimate*
         ``(i_sensor_T_j_sensor, covariance)`` of the graph, against which its closure is checked.
+        With *hold*, a closure that passes is not returned but held with the pending ones (accepted
+        only in an agreeing group).
         """
         c = self.config
         self.stats.verified += 1
@@ -302,9 +305,14 @@ class LoopCloser:
         except DegenerateInputError:
             self.stats.rejected_icp += 1
             return None
-        closure, reason = self._attempt(keyframes, i, j, target, start, guess_sensor, relative_cov, source, estimate)
+        closure, reason = self._attempt(keyframes, i, j, target, start, guess_sensor, relative_cov, source, estimate,
+                                        held=hold)
         if closure is None:
             setattr(self.stats, reason, getattr(self.stats, reason) + 1)
+            return None
+        if hold:
+            self._pending.append(closure)
+            self.stats.opposite_pending += 1
             return None
         self.stats.accepted += 1
         return closure
@@ -325,9 +333,11 @@ class LoopCloser:
         return win_m, win_rad
 
     def _attempt(self, keyframes: list[Keyframe], i: int, j: int, target: IcpTarget, start: Array, guess_sensor: Array,
-                 relative_cov: Array | None, source: str, estimate: tuple[Array, Array] | None = None
-                 ) -> tuple[LoopClosure | None, str]:
-        """One ICP from *start* and the acceptance tests: (closure, "") or (None, name of the failed test's counter)."""
+                 relative_cov: Array | None, source: str, estimate: tuple[Array, Array] | None = None,
+                 held: bool = False) -> tuple[LoopClosure | None, str]:
+        """One ICP from *start* and the acceptance tests: (closure, "") or (None, name of the failed test's counter).
+        A spatial closure that fails only the consistency test is kept pending (for a group), unless it is to
+        be *held* (the opposite-heading retry): then the test is ``opposite_max_mahalanobis`` and failing it ends it."""
         c = self.config
         kj = keyframes[j]
         cfg = self._icp if source == "spatial" else self._icp_wide
@@ -359,8 +369,10 @@ class LoopCloser:
         if source == "spatial" and self._unvouched(relative_cov):
             source = "global"  # the estimate is too uncertain to vouch for it: held as a hypothesis below
         elif source == "spatial" and relative_cov is not None:
-            if self._mahalanobis2(guess_sensor, relative_cov, T, res.covariance) > c.max_mahalanobis**2 * self.dof:
-                self._pending.append(self._closure(keyframes, i, j, T, res, source))
+            limit = c.opposite_max_mahalanobis if held else c.max_mahalanobis
+            if self._mahalanobis2(guess_sensor, relative_cov, T, res.covariance) > limit**2 * self.dof:
+                if not held:
+                    self._pending.append(self._closure(keyframes, i, j, T, res, source))
                 return None, "rejected_consistency"
         if source == "descriptor" and estimate is not None and c.descriptor_max_mahalanobis is not None:
             # A place that looks alike but lies where the graph is sure the robot was not: an aliased
@@ -563,7 +575,8 @@ class LoopCloser:
         far = np.sqrt(uncertainty.position_var) > c.far_sigma_m
         gain = self.information_gain(uncertainty) if c.min_information_gain > 0 else None
         tied = False  # a candidate the graph already ties to j closely: the place is known
-        for i in self.spatial_candidates(kj, poses[:, :3, 3], self.search_radii(uncertainty), far):
+        candidates = self.spatial_candidates(kj, poses[:, :3, 3], self.search_radii(uncertainty), far)
+        for i in candidates:
             self.stats.candidates += 1
             tried.add(i)
             if gain is not None and gain[i] < c.min_information_gain:
@@ -598,5 +611,22 @@ class LoopCloser:
                 self._global_turn += 1
                 if self._global_turn % c.global_every_keyframes == 0:
                     self._global_search(keyframes, poses, j, places)
+        if not out and not tied and self.planar and c.opposite_retry_min_gap_keyframes is not None:
+            self._retry_opposite(keyframes, poses, j, [i for i in candidates if not far[i]], uncertainty)
         self.remember(kj)
         return out
+
+    def _retry_opposite(self, keyframes: list[Keyframe], poses: Array, j: int, candidates: list[int],
+                        uncertainty: NodeUncertainty) -> None:
+        """Verify keyframe *j* again against those of its (graph-near) spatial *candidates* it sees from the
+        opposite direction — relative heading beyond 90°, at least ``opposite_retry_min_gap_keyframes``
+        older — now with their ±``far_submap_keyframes`` local maps; closures that pass are held for a
+        group (see ``LoopConfig.opposite_retry_min_gap_keyframes``)."""
+        for i in candidates:
+            if j - i < self.config.opposite_retry_min_gap_keyframes:
+                continue
+            guess = _sensor_relative(keyframes, poses, i, j)
+            if abs(G.matrix_to_xytheta(guess)[2]) <= np.pi / 2:
+                continue
+            self.stats.candidates += 1
+            self.verify(keyframes, poses, i, j, guess, uncertainty.covariance(i, self.planar), "spatial", far=True, hold=True)
