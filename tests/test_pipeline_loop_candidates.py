@@ -366,13 +366,16 @@ def test_a_keyframe_that_closed_nothing_retries_old_opposite_views_against_their
 
 def test_a_held_closure_waits_for_a_group_and_an_inconsistent_one_is_not_held():
     """verify(hold=True): a closure passing every test is pending, not returned or counted as accepted; one
-    failing the consistency test with the estimate is dropped, not pooled (the retry vouches for nothing
-    the estimate rules out)."""
+    failing the consistency test with the estimate (opposite_max_mahalanobis, or a turn of its relative
+    heading beyond opposite_max_heading_deg) is dropped, not pooled (the retry vouches for nothing the
+    estimate rules out)."""
     poses = np.array([G.se3_exp([1.0 * k, 0.0, 0.0, 0.0, 0.0, 0.0]) for k in range(40)])
     keyframes = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, 3))) for k in range(40)]
     T = G.relative(poses[0], poses[30])
-    rel_cov = np.diag([0.1**2] * 3 + [1e-4] * 3)
-    for found, pooled in ((T, True), (T @ G.se3_exp([3.0, 0, 0, 0, 0, 0]), False)):
+    sure, loose_heading = np.diag([0.1**2] * 3 + [1e-4] * 3), np.diag([0.1**2] * 3 + [np.radians(5.0)**2] * 3)
+    turned = T @ G.se3_exp([0, 0, 0, 0, 0, np.radians(3.0)])  # within 1 σ of the heading, beyond 1.5°
+    for found, rel_cov, pooled in ((T, sure, True), (T @ G.se3_exp([3.0, 0, 0, 0, 0, 0]), sure, False),
+                                   (turned, loose_heading, False)):
         res = SimpleNamespace(converged=True, accepted=True, fitness=0.9, rmse=0.01, degenerate=False,
                               transform=found, covariance=np.diag([1e-4] * 3 + [1e-6] * 3))
         closer = LoopCloser(LoopConfig(), planar=False)

@@ -374,6 +374,8 @@ class LoopCloser:
                 if not held:
                     self._pending.append(self._closure(keyframes, i, j, T, res, source))
                 return None, "rejected_consistency"
+            if held and G.rotation_angle(G.relative(guess_sensor, T)[:3, :3]) > np.radians(c.opposite_max_heading_deg):
+                return None, "rejected_consistency"
         if source == "descriptor" and estimate is not None and c.descriptor_max_mahalanobis is not None:
             # A place that looks alike but lies where the graph is sure the robot was not: an aliased
             # corridor, not a revisit (on the Intel, CSAIL and hospital logs every descriptor closure
