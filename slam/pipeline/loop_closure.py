@@ -8,7 +8,9 @@ plus, for 2D scans, places whose Scan Context descriptor matches (:mod:`slam.loo
 which finds revisits the drifted estimate cannot reach; and, when old places lie within the new
 keyframe's uncertainty but beyond the far search, a global search of one of them at a time (its whole
 local map, a wide heading window: Cartographer's global constraint search, Hess et al. 2016 §V),
-whose hits are held as hypotheses and enter the graph only as a consistent group.
+whose hits are held as hypotheses and enter the graph only as a consistent group; and, when a
+keyframe closed nothing, a retry of its old candidates seen from the opposite direction against
+their larger local maps, held for a group the same way (``LoopConfig.opposite_retry_min_gap_keyframes``).
 
 Verification: point-to-plane ICP (:func:`registration.point_to_plane.icp_point_to_plane`) of the new
 keyframe's scan against the candidate's local map (the candidate and its ±k neighbouring keyframes
