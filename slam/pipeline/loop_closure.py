@@ -339,7 +339,8 @@ class LoopCloser:
                  held: bool = False) -> tuple[LoopClosure | None, str]:
         """One ICP from *start* and the acceptance tests: (closure, "") or (None, name of the failed test's counter).
         A spatial closure that fails only the consistency test is kept pending (for a group), unless it is to
-        be *held* (the opposite-heading retry): then the test is ``opposite_max_mahalanobis`` and failing it ends it."""
+        be *held* (the opposite-heading retry): then the test is ``opposite_max_mahalanobis`` plus a turn of the
+        estimate's relative heading of at most ``opposite_max_heading_deg``, and failing it ends it."""
         c = self.config
         kj = keyframes[j]
         cfg = self._icp if source == "spatial" else self._icp_wide
