@@ -17,6 +17,7 @@ calibrated online against the registration (:mod:`slam.pipeline.wheel_calibratio
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,6 +80,14 @@ class WheelEdge:
     covariance: Array
 
 
+class EdgeCovariance(NamedTuple):
+    """A keyframe edge's registration covariance (base frame): *posterior* scaled by the a-posteriori
+    variance factor (the edge's), *prior* at the a-priori point σ (the wheel gate's)."""
+
+    posterior: Array
+    prior: Array
+
+
 @dataclass
 class ScanTrack:
     """Per-scan bookkeeping to give every scan a pose after optimisation."""
@@ -127,10 +136,9 @@ class FrontEnd:
         return self._diagonal(c.floor_translation_m**2 + c.floor_translation_per_m**2 * dist,
                               c.floor_rotation_rad**2 + c.floor_rotation_per_rad**2 * ang)
 
-    def _edge_covariance(self, prev: Keyframe, kf: Keyframe, rel_base: Array) -> tuple[Array, Array] | None:
+    def _edge_covariance(self, prev: Keyframe, kf: Keyframe, rel_base: Array) -> EdgeCovariance | None:
         """Registration covariance of keyframe *kf* against *prev* at the odometry's relative pose (base
-        frame): (with the a-posteriori variance factor, at the a-priori σ), or None when it cannot be
-        evaluated.
+        frame), with and without the a-posteriori variance factor, or None when it cannot be evaluated.
 
         The factor is max(1, σ̂²/σ²), σ̂² = Σe²/(n − dof) of the plane residuals (the unit-weight
         variance of least squares): the Freiburg hospital's long, sparse ranges fit at σ̂ ≈ 7 cm
@@ -154,7 +162,7 @@ class FrontEnd:
         factor = 1.0
         if c.edge_sigma_from_residuals:
             factor = max(1.0, res.residual / max(res.n_residuals - res.dof, 1) / c.edge_sigma_m**2)
-        return prior * factor, prior
+        return EdgeCovariance(prior * factor, prior)
 
     def _wheel_covariance(self, rel: Array) -> Array:
         c = self.config.odometry
@@ -239,11 +247,11 @@ class FrontEnd:
                 covs = self._edge_covariance(prev, kf, rel)
                 if covs is None:
                     cov = self._cov_since_kf if self._cov_since_kf is not None else np.zeros((self._dof, self._dof))
-                    covs = (cov, cov)
+                    covs = EdgeCovariance(cov, cov)
                 floor = self._floor(rel)
-                edge = OdometryEdge(prev.id, kf.id, rel, covs[0] + floor)
+                edge = OdometryEdge(prev.id, kf.id, rel, covs.posterior + floor)
                 if c.wheel_edges and prev.frame.odom is not None and frame.odom is not None:
-                    wheel = self._wheel_edge(prev, kf, edge, covs[1] + floor)
+                    wheel = self._wheel_edge(prev, kf, edge, covs.prior + floor)
                     if wheel is not None:
                         self.wheel_edges.append(wheel)
             if self._keep:
