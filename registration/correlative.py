@@ -118,21 +118,23 @@ def angular_step(points: Array, resolution: float) -> float:
     return float(np.arccos(1.0 - resolution**2 / (2.0 * r**2)))
 
 
-def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
-          min_score: float = 0.0, min_gain: float = 0.0) -> CorrelativeResult:
-    """Best ``target_T_scan`` within ±*window_m* (x and y) and ±*window_rad* of the planar 4×4 *guess*.
+@dataclass(frozen=True)
+class SearchGrid:
+    """The discretised window of :func:`match`: the scan's cells ``(R, N, 2)`` at each of the R headings
+    ``thetas`` (the guess's is index *k*), offsets in [−w, w]² cells around the guess's (x0, y0)."""
 
-    Exact over the discretised window: depth-first branch and bound, children best first (Hess et
-    al. 2016, Algorithm 3), compiled (:func:`registration.kernels.branch_and_bound`); a block is
-    expanded only when its max-pooled bound beats the best score found so far.
-    *min_score* starts the bound there (Cartographer's ``min_score``, Hess et al. 2016 §V-C): blocks
-    that cannot reach it are never expanded; when no pose in the window scores above it (nor the
-    guess), the result is the guess with its score, which is then below *min_score*.
-    *min_gain*: a pose counts only when it beats the guess's score by this much (a caller that starts
-    from the search's pose only then need not see smaller gains). When the guess reaches *min_score*
-    the bound starts at guess score + *min_gain*, so the result is the window's maximum when that is
-    at least this high and the guess otherwise; the rest is pruned without being expanded.
-    """
+    x0: float
+    y0: float
+    thetas: Array
+    k: int
+    cells: NDArray[np.int32]
+    w: int
+
+
+def search_grid(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float,
+                window_rad: float) -> SearchGrid:
+    """The candidates :func:`match` searches: headings ±*window_rad* around the planar 4×4 *guess* at the
+    angular step of Hess et al. 2016 (Eq. 7), offsets ±*window_m* at the pyramid's resolution."""
     pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
     if len(pts) < 3:
         raise DegenerateInputError("correlative matching needs at least 3 scan points")
@@ -144,17 +146,35 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     rotated = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
     cells = pyramid.cells(rotated).astype(np.int32)  # (R, N, 2); int32 halves the gathers' index traffic
-    w = int(np.ceil(window_m / res))
-    top = pyramid.levels
-    while top > 0 and 2 ** (top - 1) >= 2 * w + 1:  # a level below already spans the window in one block
-        top -= 1
+    return SearchGrid(float(x0), float(y0), thetas, k, cells, int(np.ceil(window_m / res)))
 
-    guess_score = float(pyramid.score_candidates(0, cells, np.array([k]), np.zeros((1, 2), np.int64))[0])
+
+def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
+          min_score: float = 0.0, min_gain: float = 0.0) -> CorrelativeResult:
+    """Best ``target_T_scan`` within ±*window_m* (x and y) and ±*window_rad* of the planar 4×4 *guess*.
+
+    Exact over the discretised window (:func:`search_grid`): depth-first branch and bound, children
+    best first (Hess et al. 2016, Algorithm 3), compiled (:func:`registration.kernels.branch_and_bound`);
+    a block is expanded only when its max-pooled bound beats the best score found so far.
+    *min_score* starts the bound there (Cartographer's ``min_score``, Hess et al. 2016 §V-C): blocks
+    that cannot reach it are never expanded; when no pose in the window scores above it (nor the
+    guess), the result is the guess with its score, which is then below *min_score*.
+    *min_gain*: a pose counts only when it beats the guess's score by this much (a caller that starts
+    from the search's pose only then need not see smaller gains). When the guess reaches *min_score*
+    the bound starts at guess score + *min_gain*, so the result is the window's maximum when that is
+    at least this high and the guess otherwise; the rest is pruned without being expanded.
+    """
+    g = search_grid(scan_points, pyramid, guess, window_m, window_rad)
+    top = pyramid.levels
+    while top > 0 and 2 ** (top - 1) >= 2 * g.w + 1:  # a level below already spans the window in one block
+        top -= 1
+    guess_score = float(pyramid.score_candidates(0, g.cells, np.array([g.k]), np.zeros((1, 2), np.int64))[0])
     floor = max(guess_score, min_score)
     if min_gain > 0 and guess_score >= min_score:
         floor = guess_score + min_gain - 1e-12  # a maximum of exactly guess + min_gain still counts
-    best, best_rot, ox, oy = kernels.branch_and_bound(pyramid.grids, cells, top, w, floor, k, 0, 0)
-    if best_rot == k and ox == 0 and oy == 0:  # nothing beat the guess (or min_score)
+    best, best_rot, ox, oy = kernels.branch_and_bound(pyramid.grids, g.cells, top, g.w, floor, g.k, 0, 0)
+    if best_rot == g.k and ox == 0 and oy == 0:  # nothing beat the guess (or min_score)
         return CorrelativeResult(np.asarray(guess, dtype=np.float64).copy(), guess_score, guess_score)
-    T = G.xytheta_to_matrix(x0 + ox * res, y0 + oy * res, thetas[best_rot])
+    res = pyramid.resolution
+    T = G.xytheta_to_matrix(g.x0 + ox * res, g.y0 + oy * res, g.thetas[best_rot])
     return CorrelativeResult(T, float(best), guess_score)
