@@ -308,7 +308,7 @@ class LoopCloser:
             self.stats.rejected_icp += 1
             return None
         closure, reason = self._attempt(keyframes, i, j, target, start, guess_sensor, relative_cov, source, estimate,
-                                        held=hold)
+                                        hold=hold)
         if closure is None:
             setattr(self.stats, reason, getattr(self.stats, reason) + 1)
             return None
@@ -336,11 +336,11 @@ class LoopCloser:
 
     def _attempt(self, keyframes: list[Keyframe], i: int, j: int, target: IcpTarget, start: Array, guess_sensor: Array,
                  relative_cov: Array | None, source: str, estimate: tuple[Array, Array] | None = None,
-                 held: bool = False) -> tuple[LoopClosure | None, str]:
+                 hold: bool = False) -> tuple[LoopClosure | None, str]:
         """One ICP from *start* and the acceptance tests: (closure, "") or (None, name of the failed test's counter).
-        A spatial closure that fails only the consistency test is kept pending (for a group), unless it is to
-        be *held* (the opposite-heading retry): then the test is ``opposite_max_mahalanobis`` plus a turn of the
-        estimate's relative heading of at most ``opposite_max_heading_deg``, and failing it ends it."""
+        A spatial closure that fails only the consistency test is kept pending (for a group); with *hold* (the
+        opposite-heading retry, whose passes are pending anyway) the test is ``opposite_max_mahalanobis`` plus
+        a turn of the estimate's relative heading of at most ``opposite_max_heading_deg``, and failing it ends it."""
         c = self.config
         kj = keyframes[j]
         cfg = self._icp if source == "spatial" else self._icp_wide
@@ -372,12 +372,12 @@ class LoopCloser:
         if source == "spatial" and self._unvouched(relative_cov):
             source = "global"  # the estimate is too uncertain to vouch for it: held as a hypothesis below
         elif source == "spatial" and relative_cov is not None:
-            limit = c.opposite_max_mahalanobis if held else c.max_mahalanobis
+            limit = c.opposite_max_mahalanobis if hold else c.max_mahalanobis
             if self._mahalanobis2(guess_sensor, relative_cov, T, res.covariance) > limit**2 * self.dof:
-                if not held:
+                if not hold:
                     self._pending.append(self._closure(keyframes, i, j, T, res, source))
                 return None, "rejected_consistency"
-            if held and G.rotation_angle(G.relative(guess_sensor, T)[:3, :3]) > np.radians(c.opposite_max_heading_deg):
+            if hold and G.rotation_angle(G.relative(guess_sensor, T)[:3, :3]) > np.radians(c.opposite_max_heading_deg):
                 return None, "rejected_consistency"
         if source == "descriptor" and estimate is not None and c.descriptor_max_mahalanobis is not None:
             # A place that looks alike but lies where the graph is sure the robot was not: an aliased

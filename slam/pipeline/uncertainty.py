@@ -65,13 +65,12 @@ class RelativeUncertainty:
         # kept sorted by keyframe pair (newer end, then older end): a new keyframe's edges go in at or
         # near the end, so inserting in place is cheap and the search needs no sort.
         self._n = 0
-        self._keys = np.zeros(64, dtype=np.int64)  # _key(older, newer) of each edge, ascending
         self._ends = np.zeros((64, 2), dtype=np.int64)  # (older, newer) keyframe of each edge
         self._var = np.zeros((64, 2))  # translation, rotation variance (traces)
 
     @staticmethod
-    def _key(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
-        """One sort key per keyframe pair (older *lo*, newer *hi*): row-major in (hi, lo)."""
+    def _key(lo, hi):  # type: ignore[no-untyped-def]
+        """One sort key per keyframe pair (older *lo*, newer *hi*; ints or arrays): row-major in (hi, lo)."""
         return hi * _PAIR_BASE + lo
 
     def add_edge(self, i: int, j: int, covariance: Array) -> None:
@@ -80,15 +79,16 @@ class RelativeUncertainty:
         C = np.asarray(covariance, dtype=float)
         n = self._n
         if n == len(self._ends):
-            self._keys = np.concatenate([self._keys, np.zeros_like(self._keys)])
             self._ends = np.concatenate([self._ends, np.zeros_like(self._ends)])
             self._var = np.concatenate([self._var, np.zeros_like(self._var)])
         lo, hi = min(i, j), max(i, j)
-        key = hi * _PAIR_BASE + lo
-        at = n if n == 0 or key >= self._keys[n - 1] else int(np.searchsorted(self._keys[:n], key, side="right"))
-        for a in (self._keys, self._ends, self._var):  # shift the (few) later edges up by one
-            a[at + 1:n + 1] = a[at:n].copy()
-        self._keys[at], self._ends[at] = key, (lo, hi)
+        at = n
+        if n and (hi, lo) < (self._ends[n - 1, 1], self._ends[n - 1, 0]):
+            keys = self._key(self._ends[:n, 0], self._ends[:n, 1])
+            at = int(np.searchsorted(keys, self._key(lo, hi), side="right"))
+            for a in (self._ends, self._var):  # shift the (few) later edges up by one
+                a[at + 1:n + 1] = a[at:n].copy()
+        self._ends[at] = (lo, hi)
         self._var[at] = (np.trace(C[:d, :d]), np.trace(C[d:, d:]))
         self._n = n + 1
 
@@ -109,7 +109,7 @@ class RelativeUncertainty:
         w = vt + vr * lever2 + 1e-12  # strictly positive: csgraph drops explicit zeros
         # Parallel edges (odometry and wheel, repeated closures): keep the most certain one. The edges
         # are sorted by pair, so each pair's edges are one run: its minimum by reduceat, no sort.
-        pair = self._keys[: self._n]
+        pair = self._key(lo, hi)
         new_run = np.ones(self._n, dtype=bool)
         new_run[1:] = pair[1:] != pair[:-1]
         starts = np.flatnonzero(new_run)
