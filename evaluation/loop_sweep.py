@@ -12,27 +12,36 @@ scored on the closures the verifier accepted (before the back end's pruning):
 * with a Kümmerle relations file: the relation error of the whole trajectory (Kümmerle et al. 2009).
 
 A sweep is written ``NAME=start:stop:count`` (``count`` values evenly spaced from ``start`` to ``stop``,
-both included; integer fields are rounded); several sweeps form their cartesian product.
+both included; integer fields are rounded); several sweeps form their cartesian product. ``slam loops``
+sweeps :class:`LoopConfig` fields by name; ``slam batch`` uses the same grammar with dotted names into
+:class:`SlamConfig` (:func:`numeric_fields`, e.g. ``odometry.icp_tolerance``). Each grid point is scored
+by :func:`score_setting`, one call per setting, which a parallel executor may run anywhere.
 """
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from registration.errors import ConfigError
 from slam.pipeline.config import LoopConfig, SlamConfig
 
 from .loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, score_against_truth, score_loops
 
-__all__ = ["Sweep", "SweepResult", "parse_sweep", "sweep_grid", "run_loop_sweep", "sweep_recorded", "write_sweep",
-           "COLUMNS_TRUTH", "COLUMNS_SELF", "COLUMNS_RELATIONS"]
+M = TypeVar("M", bound=BaseModel)
+#: ``map_fn(fn, shared, items, on_done)`` → ``[fn(*shared, *item) for item in items]`` in item order, calling
+#: ``on_done(index, result)`` as each finishes; a parallel executor may run the calls anywhere.
+MapFn = Callable[[Callable[..., Any], tuple, Sequence[tuple], Callable[[int, Any], None] | None], list]
+
+__all__ = ["Sweep", "SweepResult", "parse_sweep", "numeric_fields", "sweep_grid", "run_loop_sweep", "sweep_recorded",
+           "score_setting", "write_sweep", "COLUMNS_TRUTH", "COLUMNS_SELF", "COLUMNS_RELATIONS"]
 
 # Columns after the swept values, by kind of log.
 COLUMNS_TRUTH = ("accepted", "pruned", "true_positive", "false_positive", "precision", "revisits_found", "revisits",
@@ -62,29 +71,41 @@ class SweepResult:
         return bool(self.meta.get("ground_truth"))
 
 
-def _sweepable() -> dict[str, type]:
-    """LoopConfig fields a sweep may vary: the int and float ones, optional (None = off) or not."""
-    out = {}
-    for name, f in LoopConfig.model_fields.items():
+def numeric_fields(model: type[BaseModel], prefix: str = "") -> dict[str, type]:
+    """Fields of *model* a sweep may vary, by (dotted) name: the int and float ones, optional (None = off)
+    or not, also inside nested models (``numeric_fields(SlamConfig)`` has ``"loops.min_fitness"``)."""
+    out: dict[str, type] = {}
+    for name, f in model.model_fields.items():
+        ann = f.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            out |= numeric_fields(ann, f"{prefix}{name}.")
+            continue
         for kind in (int, float):
-            if f.annotation in (kind, kind | None):
-                out[name] = kind
+            if ann in (kind, kind | None):
+                out[f"{prefix}{name}"] = kind
     return out
 
 
-def parse_sweep(text: str) -> Sweep:
+def parse_sweep(text: str, fields: dict[str, type] | None = None) -> Sweep:
     """``NAME=start:stop:count`` → :class:`Sweep`; ConfigError (one line) for anything malformed.
 
-    Values are checked against the field's constraints by :func:`sweep_grid`.
+    *fields*: the names a sweep may vary and their kinds (default: :class:`LoopConfig`'s, see
+    :func:`numeric_fields`). Values are checked against the field's constraints by :func:`sweep_grid`.
     """
-    fields = _sweepable()
+    loop_names = fields is None
+    fields = numeric_fields(LoopConfig) if fields is None else fields
     name, eq, spec = text.partition("=")
     name = name.strip()
     if not eq or not name:
         raise ConfigError(f"--sweep {text!r}: expected NAME=start:stop:count")
     if name not in fields:
-        kind = "is not a numeric loop setting" if name in LoopConfig.model_fields else "is not a loop setting"
-        raise ConfigError(f"--sweep {text!r}: {name!r} {kind}; sweepable: {', '.join(sorted(fields))}")
+        if loop_names:
+            kind = "is not a numeric loop setting" if name in LoopConfig.model_fields else "is not a loop setting"
+            known = ", ".join(sorted(fields))
+        else:
+            kind = "is not a numeric setting"
+            known = "dotted config names, e.g. loops.min_fitness, odometry.icp_tolerance, max_scans"
+        raise ConfigError(f"--sweep {text!r}: {name!r} {kind}; sweepable: {known}")
     parts = spec.split(":")
     if len(parts) != 3:
         raise ConfigError(f"--sweep {text!r}: expected NAME=start:stop:count")
@@ -110,10 +131,12 @@ def parse_sweep(text: str) -> Sweep:
     return Sweep(name, values)
 
 
-def sweep_grid(base: LoopConfig, sweeps: Iterable[Sweep]) -> list[tuple[dict[str, float | int], LoopConfig]]:
-    """Cartesian product of *sweeps* over *base*: ``(swept values, LoopConfig)`` per grid point, first sweep slowest.
+def sweep_grid(base: M, sweeps: Iterable[Sweep]) -> list[tuple[dict[str, float | int], M]]:
+    """Cartesian product of *sweeps* over *base*: ``(swept values, config)`` per grid point, first sweep slowest.
 
-    Without sweeps: the base setting alone. ConfigError for a field swept twice or a value the model rejects.
+    *base* is a :class:`LoopConfig` (``slam loops``) or any config model whose fields the sweeps name,
+    dotted into nested models (``slam batch``: a :class:`SlamConfig`). Without sweeps: the base setting
+    alone. ConfigError for a field swept twice or a value the model rejects.
     """
     sweeps = list(sweeps)
     names = [s.name for s in sweeps]
@@ -124,8 +147,15 @@ def sweep_grid(base: LoopConfig, sweeps: Iterable[Sweep]) -> list[tuple[dict[str
     grid = []
     for combo in itertools.product(*(s.values for s in sweeps)):
         setting = dict(zip(names, combo))
+        point = copy.deepcopy(data)
+        for name, value in setting.items():
+            *path, leaf = name.split(".")
+            node = point
+            for key in path:
+                node = node[key]
+            node[leaf] = value
         try:
-            cfg = LoopConfig.model_validate(data | setting)
+            cfg = type(base).model_validate(point)
         except ValidationError as exc:
             err = exc.errors()[0]
             where = ".".join(str(p) for p in err["loc"])
@@ -175,6 +205,17 @@ def run_loop_sweep(
                           min_separation=min_separation, progress=progress)
 
 
+def _sequential_map(fn: Callable[..., Any], shared: tuple, items: Sequence[tuple],
+                    on_done: Callable[[int, Any], None] | None = None) -> list:
+    """The default :data:`MapFn`: one call after another in this process."""
+    out = []
+    for i, item in enumerate(items):
+        out.append(fn(*shared, *item))
+        if on_done is not None:
+            on_done(i, out[-1])
+    return out
+
+
 def sweep_recorded(
     rec,  # slam.pipeline.loop_replay.FrontEndRecord
     config: SlamConfig,
@@ -184,6 +225,7 @@ def sweep_recorded(
     revisit_radius: float = 1.0,
     min_separation: int | None = None,
     progress: Callable[[str], None] | None = None,
+    map_fn: MapFn | None = None,
 ) -> SweepResult:
     """Replay loop closure over a recorded front end for every grid point and score it (module docstring).
 
@@ -196,9 +238,9 @@ def sweep_recorded(
             ``exclude_recent_keyframes + 1`` (closer pairs are never candidates). Fixed over the grid,
             so recall has the same denominator in every row.
         progress: called with a one-line message after each setting.
+        map_fn: runs :func:`score_setting` over the grid (:data:`MapFn`); default one after another here.
+            ``slam loops --parallel`` passes the Ray executor's; the rows are the same either way.
     """
-    from slam.pipeline.loop_replay import replay_loops
-
     sweeps = list(sweeps)
     grid = sweep_grid(config.loops, sweeps)
     gt_kf = rec.keyframe_ground_truth
@@ -207,34 +249,16 @@ def sweep_recorded(
     cols = names + list(COLUMNS_TRUTH if gt_kf is not None else COLUMNS_SELF)
     if relations is not None:
         cols += list(COLUMNS_RELATIONS)
-    rows: list[dict[str, object]] = []
-    relations_used: tuple[int, int] | None = None
-    for setting, loop_cfg in grid:
-        rep = replay_loops(rec, loop_cfg, config.backend)
-        edges = _loop_edges(rep)
-        self_score = score_loops(edges, rep.keyframe_poses)
-        row: dict[str, object] = dict(setting)
-        row["accepted"] = len(edges)
-        row["pruned"] = int(rep.stats.get("pruned", 0))
-        if gt_kf is not None:
-            t = score_against_truth(edges, gt_kf, revisit_radius, sep)
-            row |= {"true_positive": t.n_true_positive, "false_positive": t.n_loops - t.n_true_positive,
-                    "precision": t.precision, "revisits_found": t.n_revisit_nodes_found,
-                    "revisits": t.n_revisit_nodes, "recall": t.recall, "consistent": self_score.n_correct}
-        else:
-            row |= {"consistent": self_score.n_correct, "precision": self_score.precision}
-        row["time_s"] = rep.time_s
-        if relations is not None:
-            from slam.trajectory_io import Trajectory
 
-            from .relations import evaluate_relations
-
-            res = evaluate_relations(Trajectory(rec.stamps, rec.scan_poses(rep.keyframe_poses)), relations)
-            row |= {"relation_trans_mean_m": res.trans_mean, "relation_rot_mean_deg": res.rot_mean_deg}
-            relations_used = (res.n_used, res.n_used + res.n_missing)  # the same stamps in every row
-        rows.append({c: _nan_to_none(row[c]) for c in cols})
+    def done(_: int, scored: tuple[dict[str, object], tuple[int, int] | None]) -> None:
         if progress is not None:
-            progress("  ".join(f"{c}={_fmt(row[c])}" for c in cols))
+            progress("  ".join(f"{c}={_fmt(scored[0][c])}" for c in cols))
+
+    shared = (rec, config.backend, relations, revisit_radius, sep)
+    scored = (map_fn or _sequential_map)(score_setting, shared, [(setting, loop_cfg) for setting, loop_cfg in grid],
+                                         done)
+    rows = [{c: _nan_to_none(row[c]) for c in cols} for row, _ in scored]
+    relations_used = scored[-1][1] if scored else None  # the same stamps in every row
     meta = {
         "scans": int(len(rec.stamps)), "keyframes": len(rec.keyframes), "dimension": 2 if rec.planar else 3,
         "ground_truth": gt_kf is not None, "front_end_time_s": rec.time_s,
@@ -248,6 +272,49 @@ def sweep_recorded(
     if relations_used is not None:
         meta["relations_used"], meta["relations_total"] = relations_used
     return SweepResult(cols, rows, meta)
+
+
+def score_setting(
+    rec,  # slam.pipeline.loop_replay.FrontEndRecord
+    backend,  # slam.pipeline.config.BackendConfig
+    relations,  # evaluation.relations.Relations | None
+    revisit_radius: float,
+    min_separation: int,
+    setting: dict[str, float | int],
+    loop_cfg: LoopConfig,
+) -> tuple[dict[str, object], tuple[int, int] | None]:
+    """One grid point: replay loop closure and the pose graph with *loop_cfg*, score the accepted closures.
+
+    Returns the row (the swept values, then the columns of the module docstring) and, with *relations*,
+    (relations used, relations in the file).
+    """
+    from slam.pipeline.loop_replay import replay_loops
+
+    gt_kf = rec.keyframe_ground_truth
+    rep = replay_loops(rec, loop_cfg, backend)
+    edges = _loop_edges(rep)
+    self_score = score_loops(edges, rep.keyframe_poses)
+    row: dict[str, object] = dict(setting)
+    row["accepted"] = len(edges)
+    row["pruned"] = int(rep.stats.get("pruned", 0))
+    if gt_kf is not None:
+        t = score_against_truth(edges, gt_kf, revisit_radius, min_separation)
+        row |= {"true_positive": t.n_true_positive, "false_positive": t.n_loops - t.n_true_positive,
+                "precision": t.precision, "revisits_found": t.n_revisit_nodes_found,
+                "revisits": t.n_revisit_nodes, "recall": t.recall, "consistent": self_score.n_correct}
+    else:
+        row |= {"consistent": self_score.n_correct, "precision": self_score.precision}
+    row["time_s"] = rep.time_s
+    used = None
+    if relations is not None:
+        from slam.trajectory_io import Trajectory
+
+        from .relations import evaluate_relations
+
+        res = evaluate_relations(Trajectory(rec.stamps, rec.scan_poses(rep.keyframe_poses)), relations)
+        row |= {"relation_trans_mean_m": res.trans_mean, "relation_rot_mean_deg": res.rot_mean_deg}
+        used = (res.n_used, res.n_used + res.n_missing)
+    return row, used
 
 
 def _fmt(v: object) -> str:
