@@ -27,6 +27,8 @@ from numpy.typing import NDArray
 
 from registration import geometry as geo
 from registration.errors import LogFormatError
+from registration.numbers import c_floats
+from registration.textfile import text_lines
 from slam.trajectory_io import Trajectory
 
 from .trajectory import nearest_indices
@@ -86,12 +88,8 @@ def read_relations(path: str | os.PathLike[str]) -> Relations:
         LogFormatError: naming the file and line when a line has not 8 finite numbers.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise LogFormatError(p, None, "no such file") from None
     rows: list[list[float]] = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in text_lines(p, LogFormatError, "a relations file"):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -99,9 +97,9 @@ def read_relations(path: str | os.PathLike[str]) -> Relations:
         if len(fields) != 8:
             raise LogFormatError(p, f"line {lineno}", f"expected 8 fields 't1 t2 x y z roll pitch yaw', got {len(fields)}")
         try:
-            vals = [float(f) for f in fields]
-        except ValueError:
-            raise LogFormatError(p, f"line {lineno}", "non-numeric field, expected 't1 t2 x y z roll pitch yaw'") from None
+            vals = c_floats(fields)
+        except ValueError as exc:
+            raise LogFormatError(p, f"line {lineno}", f"{exc}, expected 't1 t2 x y z roll pitch yaw'") from None
         if not np.all(np.isfinite(vals)):
             raise LogFormatError(p, f"line {lineno}", "non-finite number")
         rows.append(vals)

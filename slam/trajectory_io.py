@@ -27,6 +27,8 @@ from numpy.typing import NDArray
 from registration import geometry as geo
 from registration.atomic import atomic_open
 from registration.errors import GeometryError, LogFormatError
+from registration.numbers import c_floats, c_int
+from registration.textfile import text_lines
 
 Array = NDArray[np.float64]
 PathLike = str | os.PathLike[str]
@@ -38,6 +40,7 @@ __all__ = [
     "read_kitti",
     "write_kitti",
     "read_g2o_vertices",
+    "read_node_stamps",
     "read_trajectory",
     "trajectory_from_log",
     "LOG_SUFFIXES",
@@ -106,28 +109,28 @@ class Trajectory:
 
 def _number_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
     """Yield (1-based line number, fields) for every non-empty, non-comment line."""
-    try:
-        fh = open(path, "r", encoding="utf-8")
-    except FileNotFoundError:
-        raise LogFormatError(path, None, "no such file") from None
-    except IsADirectoryError:
-        raise LogFormatError(path, None, "is a directory, expected a trajectory file") from None
-    with fh:
-        for lineno, line in enumerate(fh, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            yield lineno, s.replace(",", " ").split()
+    for lineno, line in text_lines(path, LogFormatError, "a trajectory file"):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        yield lineno, s.replace(",", " ").split()
 
 
-def _floats(path: Path, lineno: int, fields: Iterable[str], what: str) -> list[float]:
+def _floats(path: Path, lineno: int, fields: list[str], what: str) -> list[float]:
     try:
-        vals = [float(f) for f in fields]
-    except ValueError:
-        raise LogFormatError(path, f"line {lineno}", f"non-numeric field, expected {what}") from None
+        vals = c_floats(fields)
+    except ValueError as exc:
+        raise LogFormatError(path, f"line {lineno}", f"{exc}, expected {what}") from None
     if not all(np.isfinite(vals)):
         raise LogFormatError(path, f"line {lineno}", f"non-finite number, expected {what}")
     return vals
+
+
+def _vertex_id(path: Path, lineno: int, field: str) -> int:
+    try:
+        return c_int(field)
+    except ValueError:
+        raise LogFormatError(path, f"line {lineno}", f"vertex id must be an integer, got {field!r}") from None
 
 
 def _fmt(values: Iterable[float]) -> str:
@@ -226,39 +229,45 @@ def read_g2o_vertices(path: PathLike, stamps: PathLike | None = None) -> Traject
         if tag == "VERTEX_SE2":
             if len(fields) != 5:
                 raise LogFormatError(p, f"line {lineno}", "expected 'VERTEX_SE2 id x y theta'")
-            v = _floats(p, lineno, fields[1:], "'VERTEX_SE2 id x y theta'")
-            ids.append(int(v[0]))
-            poses.append(geo.xytheta_to_matrix(v[1], v[2], v[3]))
+            ids.append(_vertex_id(p, lineno, fields[1]))
+            v = _floats(p, lineno, fields[2:], "'VERTEX_SE2 id x y theta'")
+            poses.append(geo.xytheta_to_matrix(v[0], v[1], v[2]))
         elif tag == "VERTEX_SE3:QUAT":
             if len(fields) != 9:
                 raise LogFormatError(p, f"line {lineno}", "expected 'VERTEX_SE3:QUAT id x y z qx qy qz qw'")
-            v = _floats(p, lineno, fields[1:], "'VERTEX_SE3:QUAT id x y z qx qy qz qw'")
-            if np.linalg.norm(v[4:8]) < 1e-12:
+            ids.append(_vertex_id(p, lineno, fields[1]))
+            v = _floats(p, lineno, fields[2:], "'VERTEX_SE3:QUAT id x y z qx qy qz qw'")
+            if np.linalg.norm(v[3:7]) < 1e-12:
                 raise LogFormatError(p, f"line {lineno}", "zero quaternion")
-            ids.append(int(v[0]))
-            poses.append(geo.pose_from_quat(v[1:4], v[4:8]))
+            poses.append(geo.pose_from_quat(v[0:3], v[3:7]))
     if len(set(ids)) != len(ids):
         raise LogFormatError(p, None, "duplicate vertex id")
     order = np.argsort(np.array(ids, dtype=np.int64), kind="stable")
     id_arr = np.array(ids, dtype=np.float64)[order]
     P = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
-    if stamps is not None:
-        st_path = Path(stamps)
-        fields_per_line = [len(f) for _, f in _number_lines(st_path)]
-        if fields_per_line and all(k == 2 for k in fields_per_line):
-            pairs = {}
-            for lineno, f in _number_lines(st_path):
-                a, b = _floats(st_path, lineno, f, "'id stamp'")
-                pairs[int(a)] = b
-            missing = [int(i) for i in id_arr if int(i) not in pairs]
-            if missing:
-                raise LogFormatError(st_path, None, f"no stamp for vertex id {missing[0]}")
-            st = np.array([pairs[int(i)] for i in id_arr], dtype=np.float64)
-        else:
-            st = _read_stamp_file(st_path, len(id_arr))
-    else:
-        st = id_arr
+    st = read_node_stamps(stamps, id_arr.astype(np.int64)) if stamps is not None else id_arr
     return Trajectory(st, P, p.name)
+
+
+def read_node_stamps(path: PathLike, ids: NDArray[np.integer]) -> Array:
+    """The stamp (s) of each node id in *ids*, from a file of ``id stamp`` lines (e.g. ``node_stamps.txt``
+    of a run) or of one stamp per line, in the order of *ids*.
+
+    Raises:
+        LogFormatError: naming the file (and line): a malformed line, an id without a stamp, or a count
+            of bare stamps that differs from the number of ids.
+    """
+    p = Path(path)
+    rows = list(_number_lines(p))
+    if rows and all(len(f) == 2 for _, f in rows):
+        pairs = {}
+        for lineno, f in rows:
+            pairs[_vertex_id(p, lineno, f[0])] = _floats(p, lineno, f[1:], "'id stamp'")[0]
+        missing = [int(i) for i in ids if int(i) not in pairs]
+        if missing:
+            raise LogFormatError(p, None, f"no stamp for node id {missing[0]}")
+        return np.array([pairs[int(i)] for i in ids], dtype=np.float64)
+    return _read_stamp_file(p, len(ids))
 
 
 def trajectory_from_log(path: PathLike, source: str = "ground_truth", topic: str | None = None) -> Trajectory:

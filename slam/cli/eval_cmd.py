@@ -177,11 +177,9 @@ def relations_cmd(
 def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:
     """True poses of the graph nodes: by stamp (``--node-stamps`` file of 'id stamp' or one stamp per node)
     or, without it, node id = row of the ground-truth trajectory."""
-    import numpy as np
-
     from evaluation.trajectory import nearest_indices
     from registration.errors import LogFormatError
-    from slam.trajectory_io import read_trajectory
+    from slam.trajectory_io import read_node_stamps, read_trajectory
 
     ref = read_trajectory(gt)
     ids = graph.node_ids
@@ -189,17 +187,7 @@ def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: flo
         if ids.max(initial=-1) >= len(ref):
             raise LogFormatError(gt, None, f"has {len(ref)} poses but the graph has node id {int(ids.max())}; give --node-stamps")
         return ref.poses[ids]
-    rows = [line.split() for line in Path(node_stamps).read_text().splitlines() if line.strip() and not line.startswith("#")]
-    try:
-        if all(len(r) == 2 for r in rows):
-            table = {int(float(a)): float(b) for a, b in rows}
-            st = np.array([table[int(i)] for i in ids])
-        else:
-            st = np.array([float(r[0]) for r in rows])
-    except (KeyError, ValueError) as exc:
-        raise LogFormatError(node_stamps, None, f"expected 'id stamp' lines or one stamp per node ({exc})") from None
-    if len(st) != len(ids):
-        raise LogFormatError(node_stamps, None, f"has {len(st)} stamps for {len(ids)} nodes")
+    st = read_node_stamps(node_stamps, ids)
     a, b = nearest_indices(st, ref.stamps, max_diff)
     if len(a) != len(st):
         raise LogFormatError(gt, None, f"{len(st) - len(a)} node stamps have no ground-truth pose within {max_diff} s")

@@ -10,16 +10,11 @@ __all__ = ["PoseGraph", "Edge", "EdgeArrays", "RobustKernel", "GraphError", "KIN
 
 def read_graph(path):  # type: ignore[no-untyped-def]
     """Read a g2o or TORO file, chosen by content (``VERTEX2``/``EDGE2`` records mean TORO)."""
-    from pathlib import Path
-
     from registration.errors import GraphFormatError
 
-    try:
-        with open(Path(path)) as fh:
-            for line in fh:
-                tok = line.split()
-                if tok and not tok[0].startswith("#"):
-                    return read_toro(path) if tok[0] in ("VERTEX2", "EDGE2") else read_g2o(path)
-    except OSError as exc:
-        raise GraphFormatError(str(path), None, f"cannot read: {exc.strerror}") from None
+    from .g2o import graph_lines
+
+    for _, line in graph_lines(str(path)):
+        if not line.startswith("#"):
+            return read_toro(path) if line.split()[0] in ("VERTEX2", "EDGE2") else read_g2o(path)
     raise GraphFormatError(str(path), None, "empty graph file")

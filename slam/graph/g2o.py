@@ -21,17 +21,19 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 
 from registration.atomic import atomic_open
 from registration.errors import GraphFormatError
+from registration.numbers import c_floats, c_int
+from registration.textfile import text_lines
 
 from .posegraph import KINDS, PRIOR_NODE, PoseGraph, RobustKernel
 
-__all__ = ["read_g2o", "write_g2o", "TAG_PREFIX"]
+__all__ = ["read_g2o", "write_g2o", "TAG_PREFIX", "ParsedGraph", "graph_lines", "parse_numbers", "parse_id",
+           "format_numbers", "build_graph", "parse_tag", "format_tag"]
 
 TAG_PREFIX = "# gpslam:edge"
 
@@ -55,7 +57,7 @@ def full_to_upper(M: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class _Parsed:
+class ParsedGraph:
     """Raw records of a graph file before the PoseGraph is built."""
 
     path: str
@@ -103,21 +105,31 @@ def format_tag(kind: str, default_kind: str, kernel: RobustKernel | None) -> str
     return f"{TAG_PREFIX} {' '.join(parts)}" if parts else None
 
 
-def _floats(path: str, lineno: int, fields: list[str], n: int, what: str) -> list[float]:
+def graph_lines(path: str) -> Iterator[tuple[int, str]]:
+    """``(line number, stripped text)`` of the non-blank lines of a graph file (UTF-8; errors name the line)."""
+    for lineno, line in text_lines(path, GraphFormatError, "a g2o or TORO graph file"):
+        s = line.strip()
+        if s:
+            yield lineno, s
+
+
+def parse_numbers(path: str, lineno: int, fields: list[str], n: int, what: str) -> list[float]:
+    """*n* finite numbers (C locale grammar, :mod:`registration.numbers`) of a record, or a GraphFormatError."""
     if len(fields) != n:
         raise GraphFormatError(path, f"line {lineno}", f"{what}: expected {n} numbers, got {len(fields)}")
     try:
-        vals = [float(f) for f in fields]
-    except ValueError:
-        raise GraphFormatError(path, f"line {lineno}", f"{what}: not a number in {' '.join(fields)!r}") from None
+        vals = c_floats(fields)
+    except ValueError as exc:
+        raise GraphFormatError(path, f"line {lineno}", f"{what}: {exc}") from None
     if not all(np.isfinite(vals)):
         raise GraphFormatError(path, f"line {lineno}", f"{what}: non-finite value")
     return vals
 
 
-def _int(path: str, lineno: int, s: str, what: str) -> int:
+def parse_id(path: str, lineno: int, s: str, what: str) -> int:
+    """A vertex id (a non-negative integer, C locale grammar), or a GraphFormatError."""
     try:
-        v = int(s)
+        v = c_int(s)
     except ValueError:
         raise GraphFormatError(path, f"line {lineno}", f"{what}: expected an integer id, got {s!r}") from None
     if v < 0:
@@ -125,8 +137,13 @@ def _int(path: str, lineno: int, s: str, what: str) -> int:
     return v
 
 
-def build_graph(p: _Parsed) -> PoseGraph:
-    """Turn parsed records into a PoseGraph; nodes without VERTEX lines are added in sorted-id order."""
+def build_graph(p: ParsedGraph) -> PoseGraph:
+    """Turn parsed records into a PoseGraph.
+
+    A file with VERTEX lines declares its nodes: an edge to any other id is an error (a typo must not
+    add a node without a pose). A file without any (SE-Sync's) has the nodes its edges name, in
+    sorted-id order.
+    """
     if p.dim is None:
         raise GraphFormatError(p.path, None, "no vertices or edges found")
     g = PoseGraph(p.dim)
@@ -138,6 +155,12 @@ def build_graph(p: _Parsed) -> PoseGraph:
         if p.dim == 3 and np.linalg.norm(par[3:]) < 1e-12:
             raise GraphFormatError(p.path, f"line {lineno}", "zero quaternion")
         g.add_node(vid, params=par)
+    if seen:
+        for i, j, *_, lineno in p.edges:
+            for v in (i, j):
+                if v != PRIOR_NODE and v not in seen:
+                    raise GraphFormatError(p.path, f"line {lineno}", f"edge {i} → {j} names vertex {v}, which no "
+                                           "VERTEX line declares")
     missing = sorted(({e[1] for e in p.edges} | {e[0] for e in p.edges if e[0] != PRIOR_NODE}) - set(seen))
     for vid in missing:
         g.add_node(vid)
@@ -173,17 +196,10 @@ def build_graph(p: _Parsed) -> PoseGraph:
 def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
     """Read a g2o file (2D or 3D). Raises :class:`GraphFormatError` naming the file and line."""
     path_s = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise GraphFormatError(path_s, None, f"cannot read: {exc.strerror}") from None
-    p = _Parsed(path_s)
+    p = ParsedGraph(path_s)
     pending: tuple[str | None, RobustKernel | None] | None = None
     offsets_ok: set[str] = set()
-    for lineno, line in enumerate(text.splitlines(), 1):
-        s = line.strip()
-        if not s:
-            continue
+    for lineno, s in graph_lines(path_s):
         if s.startswith("#"):
             if s.startswith(TAG_PREFIX):
                 pending = parse_tag(path_s, lineno, s)
@@ -194,20 +210,20 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
             p.set_dim(2, lineno)
             if len(f) != 5:
                 raise GraphFormatError(path_s, f"line {lineno}", f"VERTEX_SE2 needs id x y theta, got {len(f) - 1} fields")
-            p.vertices.append((_int(path_s, lineno, f[1], tag), _floats(path_s, lineno, f[2:], 3, tag), lineno))
+            p.vertices.append((parse_id(path_s, lineno, f[1], tag), parse_numbers(path_s, lineno, f[2:], 3, tag), lineno))
         elif tag == "VERTEX_SE3:QUAT":
             p.set_dim(3, lineno)
             if len(f) != 9:
                 raise GraphFormatError(path_s, f"line {lineno}", f"VERTEX_SE3:QUAT needs id x y z qx qy qz qw, got {len(f) - 1} fields")
-            p.vertices.append((_int(path_s, lineno, f[1], tag), _floats(path_s, lineno, f[2:], 7, tag), lineno))
+            p.vertices.append((parse_id(path_s, lineno, f[1], tag), parse_numbers(path_s, lineno, f[2:], 7, tag), lineno))
         elif tag in ("EDGE_SE2", "EDGE_SE3:QUAT"):
             dim = 2 if tag == "EDGE_SE2" else 3
             p.set_dim(dim, lineno)
             npar, nfo = (3, 6) if dim == 2 else (7, 21)
             if len(f) != 3 + npar + nfo:
                 raise GraphFormatError(path_s, f"line {lineno}", f"{tag} needs {2 + npar + nfo} fields, got {len(f) - 1}")
-            i, j = _int(path_s, lineno, f[1], tag), _int(path_s, lineno, f[2], tag)
-            vals = _floats(path_s, lineno, f[3:], npar + nfo, tag)
+            i, j = parse_id(path_s, lineno, f[1], tag), parse_id(path_s, lineno, f[2], tag)
+            vals = parse_numbers(path_s, lineno, f[3:], npar + nfo, tag)
             kind, kernel = pending if pending else (None, None)
             pending = None
             p.edges.append((i, j, vals[:npar], vals[npar:],
@@ -216,8 +232,8 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
             p.set_dim(2, lineno)
             if len(f) != 11:
                 raise GraphFormatError(path_s, f"line {lineno}", f"EDGE_PRIOR_SE2 needs 10 fields, got {len(f) - 1}")
-            j = _int(path_s, lineno, f[1], tag)
-            vals = _floats(path_s, lineno, f[2:], 9, tag)
+            j = parse_id(path_s, lineno, f[1], tag)
+            vals = parse_numbers(path_s, lineno, f[2:], 9, tag)
             _, kernel = pending if pending else (None, None)
             pending = None
             p.edges.append((PRIOR_NODE, j, vals[:3], vals[3:], "prior", kernel, lineno))
@@ -225,29 +241,30 @@ def read_g2o(path: str | os.PathLike[str]) -> PoseGraph:
             p.set_dim(3, lineno)
             if len(f) != 31:
                 raise GraphFormatError(path_s, f"line {lineno}", f"EDGE_SE3_PRIOR needs 30 fields, got {len(f) - 1}")
-            j = _int(path_s, lineno, f[1], tag)
+            j = parse_id(path_s, lineno, f[1], tag)
             if f[2] not in offsets_ok:
                 raise GraphFormatError(path_s, f"line {lineno}", f"EDGE_SE3_PRIOR: unknown or non-identity offset {f[2]}")
-            vals = _floats(path_s, lineno, f[3:], 28, tag)
+            vals = parse_numbers(path_s, lineno, f[3:], 28, tag)
             _, kernel = pending if pending else (None, None)
             pending = None
             p.edges.append((PRIOR_NODE, j, vals[:7], vals[7:], "prior", kernel, lineno))
         elif tag == "PARAMS_SE3OFFSET":
-            vals = _floats(path_s, lineno, f[2:], 7, tag)
+            vals = parse_numbers(path_s, lineno, f[2:], 7, tag)
             if vals != [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]:
                 raise GraphFormatError(path_s, f"line {lineno}", "only identity PARAMS_SE3OFFSET is supported")
             offsets_ok.add(f[1])
         elif tag == "FIX":
             if len(f) < 2:
                 raise GraphFormatError(path_s, f"line {lineno}", "FIX needs at least one vertex id")
-            p.fixed.extend(_int(path_s, lineno, x, tag) for x in f[1:])
+            p.fixed.extend(parse_id(path_s, lineno, x, tag) for x in f[1:])
         else:
             raise GraphFormatError(path_s, f"line {lineno}", f"unknown record {tag!r} (expected VERTEX_SE2, EDGE_SE2, "
                                    "VERTEX_SE3:QUAT, EDGE_SE3:QUAT, EDGE_PRIOR_SE2, EDGE_SE3_PRIOR, FIX)")
     return build_graph(p)
 
 
-def _num(values: Iterable[float]) -> str:
+def format_numbers(values: Iterable[float]) -> str:
+    """Numbers as ``repr`` (the shortest text that reads back bit for bit), space-separated."""
     return " ".join(repr(float(v)) for v in values)
 
 
@@ -268,17 +285,17 @@ def write_g2o(graph: PoseGraph, path: str | os.PathLike[str], *, vertices: bool 
     if vertices:
         for vid, par in zip(ids, npar):
             if all(np.isfinite(par)):
-                lines.append(f"{vtag} {vid} {_num(par)}")
+                lines.append(f"{vtag} {vid} {format_numbers(par)}")
     for i, j, par, inf, kind, kernel in zip(ei, ej, epar, info_u, kinds, kernels):
         default = "prior" if i == PRIOR_NODE else ("odometry" if j == i + 1 else "loop")
         tag = format_tag(kind, default, kernel)
         if tag:
             lines.append(tag)
         if kind == "prior":
-            lines.append(f"EDGE_PRIOR_SE2 {j} {_num(par)} {_num(inf)}" if dim == 2
-                         else f"EDGE_SE3_PRIOR {j} 0 {_num(par)} {_num(inf)}")
+            lines.append(f"EDGE_PRIOR_SE2 {j} {format_numbers(par)} {format_numbers(inf)}" if dim == 2
+                         else f"EDGE_SE3_PRIOR {j} 0 {format_numbers(par)} {format_numbers(inf)}")
         else:
-            lines.append(f"{etag} {i} {j} {_num(par)} {_num(inf)}")
+            lines.append(f"{etag} {i} {j} {format_numbers(par)} {format_numbers(inf)}")
     if graph.fixed_ids:
         lines.append("FIX " + " ".join(str(v) for v in graph.fixed_ids))
     with atomic_open(path, "w") as fh:

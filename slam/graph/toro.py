@@ -10,14 +10,14 @@ PoseGraph stores the matrix in our (x, y, θ) order either way. Edge kinds use t
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
 from registration.atomic import atomic_open
 from registration.errors import GraphFormatError
 
-from .g2o import TAG_PREFIX, _floats, _int, _num, _Parsed, build_graph, format_tag, parse_tag
+from .g2o import (TAG_PREFIX, ParsedGraph, build_graph, format_numbers, format_tag, graph_lines, parse_id, parse_numbers,
+                  parse_tag)
 from .posegraph import GraphError, PoseGraph, RobustKernel
 
 __all__ = ["read_toro", "write_toro", "toro_info_to_matrix", "matrix_to_toro_info"]
@@ -39,16 +39,9 @@ def matrix_to_toro_info(M: np.ndarray) -> np.ndarray:
 def read_toro(path: str | os.PathLike[str]) -> PoseGraph:
     """Read a 2D TORO graph. Raises :class:`GraphFormatError` naming the file and line."""
     path_s = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise GraphFormatError(path_s, None, f"cannot read: {exc.strerror}") from None
-    p = _Parsed(path_s, dim=2, toro=True)
+    p = ParsedGraph(path_s, dim=2, toro=True)
     pending: tuple[str | None, RobustKernel | None] | None = None
-    for lineno, line in enumerate(text.splitlines(), 1):
-        s = line.strip()
-        if not s:
-            continue
+    for lineno, s in graph_lines(path_s):
         if s.startswith("#"):
             if s.startswith(TAG_PREFIX):
                 pending = parse_tag(path_s, lineno, s)
@@ -57,12 +50,12 @@ def read_toro(path: str | os.PathLike[str]) -> PoseGraph:
         if f[0] == "VERTEX2":
             if len(f) != 5:
                 raise GraphFormatError(path_s, f"line {lineno}", f"VERTEX2 needs id x y theta, got {len(f) - 1} fields")
-            p.vertices.append((_int(path_s, lineno, f[1], "VERTEX2"), _floats(path_s, lineno, f[2:], 3, "VERTEX2"), lineno))
+            p.vertices.append((parse_id(path_s, lineno, f[1], "VERTEX2"), parse_numbers(path_s, lineno, f[2:], 3, "VERTEX2"), lineno))
         elif f[0] == "EDGE2":
             if len(f) != 12:
                 raise GraphFormatError(path_s, f"line {lineno}", f"EDGE2 needs 11 fields, got {len(f) - 1}")
-            i, j = _int(path_s, lineno, f[1], "EDGE2"), _int(path_s, lineno, f[2], "EDGE2")
-            vals = _floats(path_s, lineno, f[3:], 9, "EDGE2")
+            i, j = parse_id(path_s, lineno, f[1], "EDGE2"), parse_id(path_s, lineno, f[2], "EDGE2")
+            vals = parse_numbers(path_s, lineno, f[3:], 9, "EDGE2")
             kind, kernel = pending if pending else (None, None)
             pending = None
             p.edges.append((i, j, vals[:3], vals[3:], kind, kernel, lineno))
@@ -82,7 +75,7 @@ def write_toro(graph: PoseGraph, path: str | os.PathLike[str]) -> None:
     lines: list[str] = []
     for vid, par in zip(graph.node_ids.tolist(), graph.node_params.tolist()):
         if all(np.isfinite(par)):
-            lines.append(f"VERTEX2 {vid} {_num(par)}")
+            lines.append(f"VERTEX2 {vid} {format_numbers(par)}")
     ei, ej = (a.tolist() for a in graph.edge_ids)
     info = matrix_to_toro_info(graph.edge_arrays().information).tolist()
     for i, j, par, inf, kind, kernel in zip(ei, ej, graph.edge_params.tolist(), info, graph.edge_kinds,
@@ -90,6 +83,6 @@ def write_toro(graph: PoseGraph, path: str | os.PathLike[str]) -> None:
         tag = format_tag(kind, "odometry" if j == i + 1 else "loop", kernel)
         if tag:
             lines.append(tag)
-        lines.append(f"EDGE2 {i} {j} {_num(par)} {_num(inf)}")
+        lines.append(f"EDGE2 {i} {j} {format_numbers(par)} {format_numbers(inf)}")
     with atomic_open(path, "w") as fh:
         fh.write("\n".join(lines) + "\n")
