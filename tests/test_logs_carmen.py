@@ -337,6 +337,16 @@ BAD_LINES = {
     "bad_odom": ("ODOM 1 2 3 4 5 six 7.0 host 8", "non-numeric ODOM"),
     "short_odom": ("ODOM 1 2 3", "ODOM needs 10 fields"),
     "robotlaser_count": (robotlaser([1.0, 2.0]).rsplit(" ", 4)[0], "needs 26 fields"),
+    # Numbers follow the C locale grammar: Python's '1_000' digit groups are not numbers (issue 27).
+    "underscore_range": (flaser([1.0, 2.0, 3.0]).replace(" 2.0 ", " 2_0.0 "), "'2_0.0'"),
+    "underscore_count": (flaser([1.0] * 10).replace("FLASER 10 ", "FLASER 1_0 "), "'1_0'"),
+    "underscore_pose": (flaser([1.0, 2.0, 3.0], robot=(1.0, 0.0, 0.0)).replace(" 1.0 0.0 0.0 1000.5", " 1_0.0 0.0 0.0 1000.5"), "'1_0.0'"),
+    "underscore_odom": (odom_line(stamp=1_000.0).replace("1000.0", "1_000.0"), "'1_000.0'"),
+    # Every stamp is finite, the logger's (last field) too.
+    "nan_logger_stamp": (flaser([1.0, 2.0, 3.0]).replace("myhost 0.001", "myhost nan"), "logger_timestamp"),
+    "inf_logger_stamp": (flaser([1.0, 2.0, 3.0]).replace("myhost 0.001", "myhost -inf"), "logger_timestamp"),
+    "inf_odom_stamp": (odom_line(stamp=float("inf")), "ODOM"),
+    "nan_odom_logger_stamp": (odom_line().rsplit(" ", 1)[0] + " nan", "ODOM"),
 }
 
 

@@ -54,6 +54,7 @@ import numpy as np
 from registration import geometry as geo
 from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
+from registration.numbers import c_float, c_int
 
 from .base import LogInfo, LogReader, SkipHandler, TopicInfo
 
@@ -87,15 +88,23 @@ def _short(tok: bytes, n: int = 24) -> str:
     return repr(s if len(s) <= n else s[:n] + "…")
 
 
+def _c_array(tokens: list[bytes]) -> np.ndarray:
+    """``np.array(tokens, float64)`` by the C locale grammar (:mod:`registration.numbers`): numpy reads
+    bytes as ``float()`` does, which also takes ``1_000``; non-ASCII bytes it refuses already."""
+    if b"_" in b"".join(tokens):
+        raise ValueError("a '_' digit group")
+    return np.array(tokens, dtype=np.float64)
+
+
 def _floats(tokens: list[bytes], path: str, lineno: int, what: str, first_field: int) -> np.ndarray:
     """Vectorised float conversion of *tokens* (fields ``first_field…`` of the line, 1-based);
     a non-numeric token is a LogFormatError naming its field."""
     try:
-        return np.array(tokens, dtype=np.float64)
+        return _c_array(tokens)
     except _NUMERIC_ERRORS:
         for i, tok in enumerate(tokens):
             try:
-                float(tok)
+                c_float(tok)
             except _NUMERIC_ERRORS:
                 raise _fail(path, lineno, f"non-numeric {what} field {first_field + i}: {_short(tok)}") from None
         raise _fail(path, lineno, f"non-numeric {what} fields") from None
@@ -103,12 +112,23 @@ def _floats(tokens: list[bytes], path: str, lineno: int, what: str, first_field:
 
 def _count(tok: bytes, path: str, lineno: int, what: str) -> int:
     try:
-        n = int(tok)
+        n = c_int(tok)
     except _NUMERIC_ERRORS:
         raise _fail(path, lineno, f"{what} must be a non-negative integer, got {_short(tok)}") from None
     if n < 0:
         raise _fail(path, lineno, f"{what} must be a non-negative integer, got {n}")
     return n
+
+
+def _stamp(tokens: list[bytes], k: int, what: str, path: str, lineno: int) -> float:
+    """The finite stamp (s) in field *k* of a line."""
+    try:
+        stamp = c_float(tokens[k])
+    except _NUMERIC_ERRORS:
+        raise _fail(path, lineno, f"{what} must be a number, got {_short(tokens[k])}") from None
+    if not math.isfinite(stamp):
+        raise _fail(path, lineno, f"{what} must be finite, got {stamp}")
+    return stamp
 
 
 _Beams = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -183,12 +203,8 @@ def _parse_numbers(tokens: list[bytes], path: str, lineno: int) -> _Laser:
         if not (max_range > 0.0):
             raise _fail(path, lineno, f"{tag} max_range must be positive, got {max_range}")
         angles = _beam_angles(start, res, n)
-    try:
-        stamp = float(tokens[-3])
-    except _NUMERIC_ERRORS:
-        raise _fail(path, lineno, f"ipc_timestamp (third-last field) must be a number, got {_short(tokens[-3])}") from None
-    if not math.isfinite(stamp):
-        raise _fail(path, lineno, f"ipc_timestamp must be finite, got {stamp}")
+    stamp = _stamp(tokens, -3, "ipc_timestamp (third-last field)", path, lineno)
+    _stamp(tokens, -1, "logger_timestamp (last field)", path, lineno)
     if n == 0:
         raise _fail(path, lineno, f"empty {tag} scan (num_readings 0)")
     if not math.isfinite(float(np.add.reduce(poses))) and not np.isfinite(poses).all():
@@ -266,7 +282,7 @@ class _FloatCache(dict):
         self.limit = limit
 
     def __missing__(self, key: bytes) -> float:
-        v = float(key)
+        v = c_float(key)
         if len(self) >= self.limit:
             self.clear()
         self[key] = v
@@ -299,12 +315,13 @@ def _flaser_block(
                 rtoks += r[2:n + 2]
                 other += r[n + 2:n + 8]
                 other.append(r[-3])
+                other.append(r[-1])
             try:
                 # Ranges repeat (a few thousand distinct tokens in a log): converting each distinct
                 # token once through the cache is ~3× faster than np.array on all of them, and
                 # float() is exactly the conversion np.array applies to bytes.
                 R = np.fromiter(map(cache.__getitem__, rtoks), np.float64, m * n).reshape(m, n)
-                vals = np.concatenate([R, np.array(other, dtype=np.float64).reshape(m, 7)], axis=1)
+                vals = np.concatenate([R, _c_array(other).reshape(m, 8)], axis=1)
             except _NUMERIC_ERRORS:
                 vals = None
     if vals is None:  # irregular or malformed block: line by line
@@ -546,18 +563,24 @@ class _LineError(Exception):
 
 
 def _check_odom(tokens: list[bytes], linenos: list[int], path: str) -> _LineError | None:
-    """Validate the numbers of a block's ODOM lines (7 per line) in one vectorised conversion."""
+    """Validate the numbers of a block's ODOM lines in one vectorised conversion: 8 per line, the 7 of
+    ``x y theta tv rv accel ipc_timestamp`` and the ``logger_timestamp``, all finite.
+
+    Their stamps are not required to increase: the gmapping-corrected logs of the development set
+    write uninitialised ODOM stamps (0, 4.6e-72, …) between proper ones, and the reader takes the
+    odometry from the laser lines anyway."""
     try:
-        ok = bool(np.isfinite(np.array(tokens, dtype=np.float64)).all())
+        ok = bool(np.isfinite(_c_array(tokens)).all())
     except _NUMERIC_ERRORS:
         ok = False
     if ok:
         return None
     for k, lineno in enumerate(linenos):
         try:
-            v = _floats(tokens[7 * k:7 * k + 7], path, lineno, "ODOM", 2)
+            v = _floats(tokens[8 * k:8 * k + 7], path, lineno, "ODOM", 2)
             if not np.isfinite(v).all():
                 raise _fail(path, lineno, "ODOM values must be finite")
+            _stamp(tokens[8 * k:8 * k + 8], -1, "ODOM logger_timestamp (last field)", path, lineno)
         except LogFormatError as exc:
             return _LineError(exc, lineno)
     return None
@@ -605,6 +628,7 @@ class _BlockParser:
                         raise _fail(path, lineno, "ODOM needs 10 fields (x y theta tv rv accel ipc_timestamp "
                                                   f"host logger_timestamp), got {len(tokens)}")
                     odom_tokens += tokens[1:8]
+                    odom_tokens.append(tokens[9])
                     odom_lines.append(lineno)
                 counts[t0.decode("ascii")] += 1
         except LogFormatError as exc:
