@@ -14,12 +14,16 @@ def solve(
     robust: str = typer.Option("none", "--robust", help="none, huber or cauchy: kernel on loop edges (gtsam only)."),
     robust_k: float = typer.Option(1.0, "--robust-k", help="Kernel threshold in standard deviations."),
     out: Path | None = typer.Option(None, "--out", help="Write the optimised graph (g2o) here."),
+    allow_disconnected: bool = typer.Option(False, "--allow-disconnected", help="Solve a graph whose parts no "
+                                            "edge joins, holding each part at its first node (their relative "
+                                            "placement is then arbitrary); refused by default."),
 ) -> None:
     """Print ``{"sesync_objective", "gtsam_error", "iterations", "time_s", ...}`` on one line."""
     import json
 
-    from registration.errors import ConfigError
+    from registration.errors import ConfigError, GraphFormatError
     from slam.graph import RobustKernel, read_graph, write_g2o
+    from slam.graph.connectivity import disconnection
     from slam.graph.costs import gtsam_error, sesync_objective
     from slam.graph.init import initial_poses
 
@@ -30,6 +34,13 @@ def solve(
     if robust != "none" and backend != "gtsam":
         raise ConfigError("--robust needs --backend gtsam (the chordal solver minimises the plain SE-Sync objective)")
     graph = read_graph(graph_path)
+    apart = disconnection(graph)
+    if apart is not None:
+        if not allow_disconnected:
+            raise GraphFormatError(graph_path, None, f"{apart}; nothing places them relative to each other (give "
+                                                     "--allow-disconnected to hold each at its first node)")
+        typer.echo(f"warning: {graph_path}: {apart}; each is held at its first node (--allow-disconnected), "
+                   "so their relative placement is arbitrary", err=True)
     kernel = None if robust == "none" else RobustKernel(robust, robust_k)
     P0 = initial_poses(graph, init)
     if backend == "chordal":

@@ -25,6 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 from registration import geometry as geo
 from registration.errors import GeometryError, GpslamError
 
+from .connectivity import component_labels, free_component_anchors
+
 Array = NDArray[np.float64]
 EdgeKind = Literal["odometry", "loop", "prior"]
 KINDS: tuple[str, ...] = ("odometry", "loop", "prior")
@@ -307,13 +309,24 @@ class PoseGraph:
         g.set_poses(poses)
         return g
 
+    def component_labels(self) -> NDArray[np.int64]:
+        """``(N,)`` connected component of each node (0 for the component of node index 0, …)."""
+        a = self.edge_arrays()
+        return self._cached("components", lambda: component_labels(self.num_nodes, a.ii, a.jj))
+
+    def free_anchor_indices(self) -> NDArray[np.int64]:
+        """The first node index of every component that no prior and no FIX holds (sorted)."""
+        a = self.edge_arrays()
+        held = np.concatenate([np.asarray([self.index_of(i) for i in self.fixed_ids], dtype=np.int64),
+                               a.jj[a.ii < 0]])
+        return free_component_anchors(self.component_labels(), held)
+
     def anchor_indices(self) -> NDArray[np.int64]:
-        """Node indices held fixed to fix the gauge: FIX'ed nodes, else node 0 unless priors exist."""
-        if self.fixed_ids:
-            return np.asarray([self.index_of(i) for i in self.fixed_ids], dtype=np.int64)
-        if KINDS.index("prior") in self._e_kind:
-            return np.zeros(0, dtype=np.int64)
-        return np.zeros(1, dtype=np.int64)
+        """Node indices held fixed to fix the gauge: FIX'ed nodes, and the first node of every component
+        that neither a FIX nor a prior holds (:mod:`slam.graph.connectivity`). For a connected graph: the
+        FIX'ed nodes, else none when priors exist, else node 0."""
+        fixed = np.asarray([self.index_of(i) for i in self.fixed_ids], dtype=np.int64)
+        return np.concatenate([fixed, self.free_anchor_indices()]) if self.num_nodes else fixed
 
     def _cached(self, key: str, fn):  # type: ignore[no-untyped-def]
         if key not in self._cache:
