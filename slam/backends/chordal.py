@@ -6,7 +6,8 @@ state = the poses X_k; perturbation on the **left** in world coordinates, ``X' =
 the translation: 12-D in 3D, 6-D in 2D); ``J_j = ∂e/∂Δx_j`` at 0 and ``J_i = −J_j``; ``H = Σ JᵀΩJ``,
 ``b = Σ JᵀΩe``; ``H Δx = −b`` with the gauge fixed by anchoring nodes.
 
-With the isotropic weights ``Ω = diag(κ I_{d²}, τ I_d)`` (:func:`slam.graph.costs.chordal_weights`) the cost
+With the isotropic weights ``Ω = diag(κ I_{d²}, τ I_d)`` (SE-Sync's κ, τ from the rotation and translation blocks of
+each edge's information, Rosen et al. IJRR 2019, eq. 14; :func:`slam.graph.costs.chordal_weights`) the cost
 ``Σ eᵀΩe`` *is* the SE-Sync objective (Rosen et al. IJRR 2019, eq. 12), because ‖R_iᵀR_j − R̃‖_F =
 ‖R_j − R_i R̃‖_F and ‖R_iᵀ(t_j − t_i) − t̃‖ = ‖t_j − t_i − R_i t̃‖. The Jacobian then has a closed-form
 normal-equation block (derived from the slides' J_j; ``[t]×`` the skew matrix of t_j):
@@ -19,11 +20,16 @@ The blocks depend on t_j only, so the sparsity pattern (BSR block index arrays) 
 free nodes numbered in a fill-reducing (minimum-degree) order of the block graph; each iteration only scatters
 new values with ``np.bincount`` and factorises with SuperLU (:func:`slam.backends.linsolve.spd_factor`). Levenberg damping (``H + λ diag H``) is optional and also switched
 on automatically when a Gauss-Newton step increases the cost.
+
+Since only κ and τ enter, an edge whose whole information matrix is not positive definite (a strong
+translation–rotation coupling) is solved like any other when both are positive, as SE-Sync does; the
+solver warns once with the number of such edges (the GTSAM back end refuses them).
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -245,6 +251,10 @@ def solve_chordal(
         raise GraphError(f"initial poses must be a finite ({graph.num_nodes}, 4, 4) array")
     a = graph.edge_arrays()
     kappa, tau = chordal_weights(graph)
+    n_indefinite = len(graph.indefinite_edges())
+    if n_indefinite:
+        warnings.warn(f"{n_indefinite} edge(s) have an information matrix that is not positive definite; the chordal "
+                      "solver uses only their SE-Sync weights κ, τ (Rosen et al. 2019, eq. 14)", stacklevel=2)
     if edge_weights is not None:  # e.g. robust (IRLS / GNC) weights; the reported cost is then weighted too
         w = np.asarray(edge_weights, dtype=float)
         kappa, tau = kappa * w, tau * w

@@ -28,6 +28,7 @@ __all__ = [
     "GtsamResult",
     "optimize",
     "build_factor_graph",
+    "refuse_indefinite",
     "to_values",
     "from_values",
     "noise_model",
@@ -122,6 +123,20 @@ def _kernels_for(graph: PoseGraph, use_kernels: bool, robust: RobustKernel | Non
     return ks
 
 
+def refuse_indefinite(graph: PoseGraph) -> None:
+    """Raise GraphError naming the edges whose information is not positive definite: GTSAM's
+    ``noiseModel.Gaussian.Information`` would factor such a matrix without complaint into a wrong square
+    root. (The chordal back end uses their SE-Sync weights instead.)"""
+    bad = graph.indefinite_edges()
+    if not len(bad):
+        return
+    ii, jj = graph.edge_ids
+    named = ", ".join(f"{int(ii[e])} → {int(jj[e])}" for e in bad[:5]) + (", …" if len(bad) > 5 else "")
+    raise GraphError(f"{len(bad)} edge(s) have an information matrix that is not positive definite, which GTSAM's "
+                     f"Gaussian noise model cannot use: {named} (the chordal back end uses only their SE-Sync "
+                     "weights: --backend chordal)")
+
+
 def build_factor_graph(
     graph: PoseGraph,
     *,
@@ -140,6 +155,7 @@ def build_factor_graph(
 
     dim = graph.dim
     a = graph.edge_arrays()
+    refuse_indefinite(graph)
     kernels = _kernels_for(graph, use_kernels, robust, robust_kinds)
     fg = gtsam.NonlinearFactorGraph()
     Between = gtsam.BetweenFactorPose2 if dim == 2 else gtsam.BetweenFactorPose3

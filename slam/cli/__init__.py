@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+import warnings
 
 import typer
 
@@ -25,6 +26,7 @@ COMMAND_MODULES = (
     "slam.cli.map_cmd",
     "slam.cli.run_cmd",
     "slam.cli.loops_cmd",
+    "slam.cli.batch_cmd",
 )
 
 app = typer.Typer(
@@ -69,8 +71,20 @@ def _interrupted(exc: BaseException) -> bool:
     return False
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:  # type: ignore[no-untyped-def]
+    """``warnings.showwarning`` of the CLI: ``warning: <message>`` on one stderr line."""
+    print(f"warning: {' '.join(str(message).split())}", file=sys.stderr if file is None else file)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point: run the typer app, turning project errors into one line and exit 2."""
+    """Console entry point: run the typer app, turning project errors into one line and exit 2, and
+    showing warnings as one ``warning:`` line each."""
+    with warnings.catch_warnings():
+        warnings.showwarning = _warning_line
+        _main(argv)
+
+
+def _main(argv: list[str] | None) -> None:
     try:
         app(args=argv, prog_name="slam")
     except GpslamError as exc:

@@ -22,7 +22,7 @@ def solve(
     import json
 
     from registration.errors import ConfigError, GraphFormatError
-    from slam.graph import RobustKernel, read_graph, write_g2o
+    from slam.graph import GraphError, RobustKernel, read_graph, write_g2o
     from slam.graph.connectivity import disconnection
     from slam.graph.costs import gtsam_error, sesync_objective
     from slam.graph.init import initial_poses
@@ -41,6 +41,13 @@ def solve(
                                                      "--allow-disconnected to hold each at its first node)")
         typer.echo(f"warning: {graph_path}: {apart}; each is held at its first node (--allow-disconnected), "
                    "so their relative placement is arbitrary", err=True)
+    if backend == "gtsam":
+        from slam.backends.gtsam_backend import refuse_indefinite
+
+        try:
+            refuse_indefinite(graph)
+        except GraphError as exc:
+            raise GraphFormatError(graph_path, None, str(exc)) from None
     kernel = None if robust == "none" else RobustKernel(robust, robust_k)
     P0 = initial_poses(graph, init)
     if backend == "chordal":
@@ -64,7 +71,8 @@ def solve(
         "nodes": graph.num_nodes,
         "edges": graph.num_edges,
         "sesync_objective": sesync_objective(graph, poses),
-        "gtsam_error": gtsam_error(result, poses),
+        # GTSAM's χ² needs every information matrix positive definite (null otherwise, see the warning)
+        "gtsam_error": None if len(graph.indefinite_edges()) else gtsam_error(result, poses),
         "iterations": iterations,
         "time_s": time_s,
     }

@@ -2,9 +2,11 @@
 
 SE-Sync objective (Rosen et al., "SE-Sync", IJRR 2019, eq. 12; no ½ factor), summed over edges (i, j):
 ``f = Σ κ_ij ‖R_j − R_i R̃_ij‖_F² + τ_ij ‖t_j − t_i − R_i t̃_ij‖²``, with the isotropic weights κ, τ
-obtained from the g2o information matrix exactly as SE-Sync's ``SESync_utils.cpp`` does
-(``../shared/data/PUBLISHED_RESULTS.md`` §2): 2D ``τ = 2 / tr(I_tt⁻¹)``, ``κ = I_θθ``; 3D
-``τ = 3 / tr(I_tt⁻¹)``, ``κ = 3 / (2 tr(I_rr⁻¹))``. Priors count with R_i = I, t_i = 0.
+(Rosen et al. 2019, eq. 14) obtained from the g2o information matrix exactly as SE-Sync's
+``SESync_utils.cpp`` does (``../shared/data/PUBLISHED_RESULTS.md`` §2): 2D ``τ = 2 / tr(I_tt⁻¹)``,
+``κ = I_θθ``; 3D ``τ = 3 / tr(I_tt⁻¹)``, ``κ = 3 / (2 tr(I_rr⁻¹))``. They use the translation and rotation
+blocks only, so an edge whose whole information is not positive definite (a strong translation–rotation
+coupling) still has usable weights when both are positive. Priors count with R_i = I, t_i = 0.
 """
 
 from __future__ import annotations
@@ -16,21 +18,39 @@ from .posegraph import EdgeArrays, GraphError, PoseGraph
 
 Array = NDArray[np.float64]
 
-__all__ = ["chordal_weights", "sesync_objective", "chordal_residuals", "gtsam_error"]
+__all__ = ["chordal_weights", "sesync_weights", "sesync_objective", "chordal_residuals", "gtsam_error"]
+
+
+def _trace_of_inverse(M: Array) -> Array:
+    """``tr(M⁻¹)`` of each ``(k, k)`` matrix of a stack; +inf for a singular one (its weight is then 0)."""
+    try:
+        return np.trace(np.linalg.inv(M), axis1=1, axis2=2)
+    except np.linalg.LinAlgError:
+        out = np.full(len(M), np.inf)
+        for k, A in enumerate(M):
+            try:
+                out[k] = np.trace(np.linalg.inv(A))
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def sesync_weights(information: Array, dim: int) -> tuple[Array, Array]:
+    """Per-edge (κ, τ) ``(M,)`` of stacked information matrices ``(M, D, D)`` (translation block first),
+    Rosen et al. 2019, eq. 14; not positive for an edge no back end can use."""
+    It = information[:, :dim, :dim]
+    Ir = information[:, dim:, dim:]
+    tau = dim / _trace_of_inverse(It)
+    if dim == 2:
+        kappa = Ir[:, 0, 0].copy()
+    else:
+        kappa = 3.0 / (2.0 * _trace_of_inverse(Ir))
+    return kappa, tau
 
 
 def chordal_weights(graph: PoseGraph) -> tuple[Array, Array]:
-    """Per-edge (κ, τ) ``(M,)`` from the information matrices (translation block first)."""
-    info = graph.edge_arrays().information
-    d = graph.dim
-    It = info[:, :d, :d]
-    Ir = info[:, d:, d:]
-    tau = d / np.trace(np.linalg.inv(It), axis1=1, axis2=2)
-    if d == 2:
-        kappa = Ir[:, 0, 0].copy()
-    else:
-        kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(Ir), axis1=1, axis2=2))
-    return kappa, tau
+    """Per-edge (κ, τ) ``(M,)`` from the graph's information matrices (:func:`sesync_weights`)."""
+    return sesync_weights(graph.edge_arrays().information, graph.dim)
 
 
 def _endpoints(poses: Array, ii: NDArray[np.int64], dim: int) -> tuple[Array, Array]:

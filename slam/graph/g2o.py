@@ -30,6 +30,7 @@ from registration.errors import GraphFormatError
 from registration.numbers import c_floats, c_int
 from registration.textfile import text_lines
 
+from .costs import sesync_weights
 from .posegraph import KINDS, PRIOR_NODE, PoseGraph, RobustKernel
 
 __all__ = ["read_g2o", "write_g2o", "TAG_PREFIX", "ParsedGraph", "graph_lines", "parse_numbers", "parse_id",
@@ -173,11 +174,15 @@ def build_graph(p: ParsedGraph) -> PoseGraph:
             infos = toro_info_to_matrix(raw)
         else:
             infos = upper_to_full(raw, g.dof)
-        eig_min = np.linalg.eigvalsh(infos)[:, 0]
-        bad = np.flatnonzero(~(eig_min > 0))
+        # Only an edge without positive SE-Sync weights is unusable by every back end; one whose whole
+        # information is indefinite is refused by GTSAM alone (PoseGraph.indefinite_edges).
+        kappa, tau = sesync_weights(infos, p.dim)
+        bad = np.flatnonzero(~((kappa > 0) & (tau > 0) & np.isfinite(kappa) & np.isfinite(tau)))
         if bad.size:
             e = p.edges[int(bad[0])]
-            raise GraphFormatError(p.path, f"line {e[6]}", "information matrix is not positive definite")
+            k, t = kappa[bad[0]], tau[bad[0]]
+            raise GraphFormatError(p.path, f"line {e[6]}", f"information matrix gives no positive SE-Sync weights "
+                                   f"(κ = {k:.6g}, τ = {t:.6g}; Rosen et al. 2019, eq. 14): no back end can use it")
     for (i, j, par, _, kind, kernel, lineno), info in zip(p.edges, infos):
         if p.dim == 3 and np.linalg.norm(par[3:]) < 1e-12:
             raise GraphFormatError(p.path, f"line {lineno}", "zero quaternion")

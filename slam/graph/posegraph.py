@@ -280,6 +280,16 @@ class PoseGraph:
             return EdgeArrays(ii, jj, meas, info, np.asarray(self._e_kind, dtype=np.int8))
         return self._cached("edges", build)
 
+    def indefinite_edges(self) -> NDArray[np.int64]:
+        """Indices of the edges whose information matrix is not positive definite (usable by the chordal
+        back end through its SE-Sync weights, not as a Gaussian noise model)."""
+        def build() -> NDArray[np.int64]:
+            info = self.edge_arrays().information
+            if not len(info):
+                return np.zeros(0, dtype=np.int64)
+            return np.flatnonzero(~(np.linalg.eigvalsh(info)[:, 0] > 0)).astype(np.int64)
+        return self._cached("indefinite", build)
+
     def edge(self, e: int) -> Edge:
         a = self.edge_arrays()
         return Edge(self._e_i[e], self._e_j[e], a.measurements[e].copy(), a.information[e].copy(),
