@@ -93,7 +93,7 @@ def load_solution(path: str | os.PathLike[str], graph) -> Array:
     """Poses of a solution file in *graph*'s node order.
 
     A g2o file (vertices matched to the graph by id) or a TUM / KITTI file with one pose per node
-    in node order.
+    in node order (a TUM file's stamps give that order: its lines are read sorted by stamp).
     """
     from slam.trajectory_io import read_trajectory
 

@@ -10,6 +10,9 @@ A :class:`Trajectory` holds ``stamps (N,)`` float64 seconds and ``poses (N, 4, 4
 * g2o ``VERTEX_SE2 id x y θ`` / ``VERTEX_SE3:QUAT id x y z qx qy qz qw``; stamps are the vertex ids
   unless a stamp file is given.
 
+Every reader returns the poses sorted by stamp (:meth:`Trajectory.sorted_by_stamp`), whatever the order
+of the lines: associations and relative errors must not depend on it.
+
 Numbers are written with ``repr`` (the shortest string that reads back to the same float64), so
 a write → read round trip is exact for stamps and translations. Files are written atomically.
 """
@@ -94,6 +97,13 @@ class Trajectory:
             and np.all(np.abs(P[:, 2, 2] - 1.0) <= tol)
         )
 
+    def sorted_by_stamp(self) -> "Trajectory":
+        """The poses in stamp order (every reader returns this). Equal stamps are ordered by their pose
+        entries, so the result does not depend on the order of the lines it was read from."""
+        n = len(self)
+        order = np.lexsort((*self.poses.reshape(n, 16).T[::-1], self.stamps))
+        return self.subset(order)
+
     def subset(self, index: NDArray[np.integer] | slice) -> "Trajectory":
         """The poses at *index* (an integer array, boolean mask or slice)."""
         return Trajectory(self.stamps[index], self.poses[index], self.name)
@@ -158,7 +168,7 @@ def read_tum(path: PathLike) -> Trajectory:
         rows.append(vals)
     data = np.array(rows, dtype=np.float64).reshape(-1, 8)
     poses = geo.pose_from_quat(data[:, 1:4], data[:, 4:8]) if len(data) else np.zeros((0, 4, 4))
-    return Trajectory(data[:, 0], poses, p.name)
+    return Trajectory(data[:, 0], poses, p.name).sorted_by_stamp()
 
 
 def write_tum(path: PathLike, trajectory: Trajectory) -> None:
@@ -203,7 +213,7 @@ def read_kitti(path: PathLike, stamps: PathLike | None = None) -> Trajectory:
     poses[:, :3, :] = data
     poses[:, 3, 3] = 1.0
     st = _read_stamp_file(Path(stamps), len(data)) if stamps is not None else np.arange(len(data), dtype=np.float64)
-    return Trajectory(st, poses, p.name)
+    return Trajectory(st, poses, p.name).sorted_by_stamp()
 
 
 def write_kitti(path: PathLike, trajectory: Trajectory) -> None:
@@ -246,7 +256,7 @@ def read_g2o_vertices(path: PathLike, stamps: PathLike | None = None) -> Traject
     id_arr = np.array(ids, dtype=np.float64)[order]
     P = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
     st = read_node_stamps(stamps, id_arr.astype(np.int64)) if stamps is not None else id_arr
-    return Trajectory(st, P, p.name)
+    return Trajectory(st, P, p.name).sorted_by_stamp()
 
 
 def read_node_stamps(path: PathLike, ids: NDArray[np.integer]) -> Array:
@@ -288,7 +298,7 @@ def trajectory_from_log(path: PathLike, source: str = "ground_truth", topic: str
             poses.append(np.asarray(T, dtype=np.float64))
     if not poses:
         raise LogFormatError(path, None, f"no scan carries a {source} pose")
-    return Trajectory(np.array(stamps), np.array(poses), f"{Path(path).name}:{source}")
+    return Trajectory(np.array(stamps), np.array(poses), f"{Path(path).name}:{source}").sorted_by_stamp()
 
 
 def read_trajectory(path: PathLike, fmt: str = "auto", stamps: PathLike | None = None) -> Trajectory:

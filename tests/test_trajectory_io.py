@@ -108,3 +108,55 @@ def test_trajectory_from_log_odometry_and_missing_ground_truth():
     with pytest.raises(LogFormatError) as ei:
         read_trajectory(log)  # auto: a log suffix means its ground truth
     assert "mit-csail" in str(ei.value) and "ground_truth" in str(ei.value)
+
+
+def _shuffled_stamps(rng, n=60) -> Trajectory:
+    """A trajectory whose stamps step back now and then (as the Intel log's scan stamps do, 631 times)."""
+    t = _random_traj(rng, n)
+    stamps = t.stamps.copy()
+    k = rng.choice(np.arange(1, n), 8, replace=False)
+    stamps[k] = stamps[k - 1] - rng.uniform(0.001, 0.005, 8)
+    return Trajectory(stamps, t.poses, "t")
+
+
+def test_every_reader_returns_poses_in_stamp_order_whatever_the_line_order(tmp_path, rng):
+    """TUM, KITTI with times.txt and g2o vertices with a stamp file: reading the lines in any order gives the
+    same trajectory, sorted by stamp (issue 27: eval rpe depended on the line order of the reference)."""
+    t = _shuffled_stamps(rng)
+    perm = rng.permutation(len(t))
+    want_order = np.argsort(t.stamps, kind="stable")
+    for order, name in ((np.arange(len(t)), "a"), (perm, "b")):
+        write_tum(tmp_path / f"{name}.tum", t.subset(order))
+        write_kitti(tmp_path / f"{name}.kitti", t.subset(order))
+        (tmp_path / f"{name}_times.txt").write_text("".join(f"{float(s)!r}\n" for s in t.stamps[order]))
+        (tmp_path / f"{name}.g2o").write_text("".join(
+            f"VERTEX_SE3:QUAT {k} {' '.join(repr(float(v)) for v in np.concatenate(geo.pose_to_quat(T)))}\n"
+            for k, T in zip(order, t.poses[order])))
+        (tmp_path / f"{name}_ids.txt").write_text("".join(f"{k} {float(s)!r}\n" for k, s in zip(order, t.stamps[order])))
+    for a, b in ((read_tum(tmp_path / "a.tum"), read_tum(tmp_path / "b.tum")),
+                 (read_kitti(tmp_path / "a.kitti", tmp_path / "a_times.txt"),
+                  read_kitti(tmp_path / "b.kitti", tmp_path / "b_times.txt")),
+                 (read_g2o_vertices(tmp_path / "a.g2o", tmp_path / "a_ids.txt"),
+                  read_g2o_vertices(tmp_path / "b.g2o", tmp_path / "b_ids.txt"))):
+        np.testing.assert_array_equal(a.stamps, t.stamps[want_order])
+        np.testing.assert_array_equal(a.stamps, b.stamps)
+        np.testing.assert_array_equal(a.poses, b.poses)
+        np.testing.assert_allclose(a.positions, t.positions[want_order], atol=1e-12)
+
+
+def test_rpe_does_not_depend_on_the_line_order(tmp_path, rng, capsys):
+    """`slam eval rpe` prints the same numbers for a reference whose lines are shuffled."""
+    from slam.cli import main
+
+    t = _shuffled_stamps(rng)
+    est = Trajectory(t.stamps, t.poses @ geo.se3_exp(rng.normal(0, 0.01, (len(t), 6))), "e")
+    write_tum(tmp_path / "est.tum", est)
+    write_tum(tmp_path / "ref.tum", t)
+    write_tum(tmp_path / "shuf.tum", t.subset(rng.permutation(len(t))))
+    outs = []
+    for ref in ("ref.tum", "shuf.tum"):
+        with pytest.raises(SystemExit) as ei:
+            main(["eval", "rpe", str(tmp_path / "est.tum"), str(tmp_path / ref)])
+        assert (ei.value.code or 0) == 0
+        outs.append(capsys.readouterr().out)
+    assert outs[0] == outs[1] and "pairs: 59" in outs[0]

@@ -34,16 +34,15 @@ def _poses_for(frames, source: str, max_dt: float):
         return out
     from slam.trajectory_io import read_tum
 
-    traj = read_tum(source)
-    order = np.argsort(traj.stamps)
-    st = traj.stamps[order]
+    traj = read_tum(source)  # in stamp order
+    st = traj.stamps
     out = []
     for f in frames:
         j = int(np.clip(np.searchsorted(st, f.stamp), 1, len(st) - 1)) if len(st) > 1 else 0
         cand = [k for k in (j - 1, j) if 0 <= k < len(st)]
         k = min(cand, key=lambda c: abs(st[c] - f.stamp))
         if abs(st[k] - f.stamp) <= max_dt:
-            out.append((f, traj.poses[order[k]]))
+            out.append((f, traj.poses[k]))
     if not out:
         raise ConfigError(f"{source}: no pose within {max_dt} s of any scan stamp")
     return out
