@@ -120,6 +120,11 @@ def rpe_cmd(
     res = evaluate_rpe(read_trajectory(est, est_format.value, est_stamps), read_trajectory(ref, ref_format.value, ref_stamps), delta=d,
                        delta_unit=delta_unit.value, relation=relation.value, align=align.value, all_pairs=all_pairs,
                        max_diff=max_diff, pairs_from_reference=pairs_from_reference)
+    if not len(res.errors):
+        from registration.errors import InputFileError
+
+        raise InputFileError(est, None, f"no two of the {res.n_matched} poses associated with {ref} are --delta "
+                             f"{fmt_num(d)} {delta_unit.value} apart: nothing to measure (give a smaller --delta)")
     typer.echo(f"metric: RPE {res.relation} [{res.unit or 'unitless'}] delta {fmt_num(d)} {delta_unit.value}")
     _echo_pairs({k: res.stats[k] for k in ("rmse", "mean", "median", "max", "std", "min", "sse")})
     typer.echo(f"pairs: {len(res.errors)}")
@@ -218,12 +223,22 @@ def loops_cmd(
         raise GraphFormatError(graph_path, None, "has no VERTEX pose for every node; give the optimised poses with --poses")
     P = load_solution(poses, graph) if poses is not None else graph.poses
     loops = loop_edges_from_graph(graph)
+    if not len(loops):
+        from registration.errors import GraphFormatError
+
+        raise GraphFormatError(graph_path, None, "has no loop closure (no edge tagged kind=loop or between "
+                               "non-consecutive nodes): nothing to score")
     s = score_loops(loops, P, trans_tol, rot_tol)
     out: dict[str, Any] = {"self": s.to_dict()}
     _echo_pairs({"loops": s.n_loops, "correct": s.n_correct, "precision": s.precision})
     if gt is not None:
         t = score_against_truth(loops, _node_gt_poses(graph, gt, node_stamps, max_diff), revisit_radius, min_separation,
                                 trans_tol, rot_tol)
+        if not t.n_revisit_nodes:
+            from registration.errors import InputFileError
+
+            raise InputFileError(gt, None, f"no node comes back within --revisit-radius {revisit_radius} m of one at "
+                                 f"least --min-separation {min_separation} nodes earlier: recall is undefined")
         out["truth"] = t.to_dict()
         _echo_pairs({"gt_true_positive": t.n_true_positive, "gt_precision": t.precision,
                      "gt_revisit_nodes": t.n_revisit_nodes, "gt_recall": t.recall})

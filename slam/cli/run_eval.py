@@ -50,6 +50,7 @@ class Reference:
     gt_file: Path | None = None  # ground-truth trajectory file (TUM, KITTI, or a log with ground truth)
     gt_in_frames: bool = False  # the log's frames carry ground truth: record it during the run
     gt_map: Path | None = None  # ground-truth map (map_server YAML), for the map ROC
+    given: bool = False  # named on the command line (each must then measure something), not found beside the log
 
     def describe(self) -> str:
         parts = []
@@ -66,20 +67,30 @@ class Reference:
 
 def find_reference(log: Path, reader, relations: Path | None = None,  # type: ignore[no-untyped-def]
                    gt: Path | None = None) -> Reference:
-    """The reference to evaluate a run of *log* against (see the module docstring).
+    """The reference to evaluate a run of *log* against (see the module docstring). A relations file, and a
+    ground-truth trajectory file that is not a log, are read here, before the run, so that a bad line is
+    reported before any work.
 
     Raises:
-        InputFileError: a given file does not exist, or nothing was given and nothing found.
+        InputFileError: a given file does not exist or is malformed, or nothing was given and nothing found.
     """
+    from evaluation.relations import read_relations
+    from slam.trajectory_io import LOG_SUFFIXES, read_trajectory
+
     for given in (relations, gt):
         if given is not None and not Path(given).exists():
             raise InputFileError(given, None, "no such file (given for --eval)")
+    if relations is not None:
+        read_relations(relations)
+    if gt is not None and not Path(gt).is_dir() and not Path(gt).name.lower().endswith(LOG_SUFFIXES):
+        read_trajectory(gt)
     if relations is not None or gt is not None:
-        return Reference(relations=relations, gt_file=gt)
+        return Reference(relations=relations, gt_file=gt, given=True)
     stem = log_stem(log)
     ref = Reference()
     beside = log.parent / f"{stem}.relations"
     if beside.is_file():
+        read_relations(beside)
         ref.relations = beside
     if reader.has_ground_truth():
         ref.gt_in_frames = True
@@ -134,8 +145,28 @@ def write_evaluation(folder: Path, ref: Reference, recorder: GroundTruthRecorder
             write_tum(gt, traj)
     gt_map = ref.gt_map if (folder / "map.npz").exists() else None  # a run without a map (--map none)
     rep = write_report(folder, gt, ref.relations, gt_map, folder, result_label=result_label)
+    _require_measured(rep.metrics, ref, len(scan_stamps))
     quiet = ("not found", "no ground-truth trajectory")  # informational: what this run does not have
     return headline(rep.metrics) + [f"note: {n}" for n in rep.notes if not any(q in n for q in quiet)]
+
+
+def _require_measured(metrics: dict, ref: Reference, n_scans: int) -> None:
+    """Raise InputFileError when the evaluation measured nothing: a reference named on the command line that
+    matches no scan of the run (as ``slam eval relations`` / ``eval ape`` would refuse it), or, for one found
+    beside the log, no metric at all. Raised before the outputs are moved into place, so none are."""
+    rel = (metrics.get("relations") or {}).get("estimate") or {}
+    ape = (metrics.get("ape_trans_m") or {}).get("estimate")
+    misses = []
+    if ref.relations is not None and not rel.get("n_used"):
+        misses.append((ref.relations, f"no relation has both stamps among the {n_scans} scans of the run (within "
+                                      f"{rel.get('stamp_tol', 'the')} s): was it written for this log?"))
+    if ref.gt_file is not None and ape is None:
+        misses.append((ref.gt_file, f"no pose within the association tolerance of the {n_scans} scan stamps of the "
+                                    "run: was it written for this log?"))
+    measured = bool(rel.get("n_used")) or ape is not None or (metrics.get("map") or {}).get("auc") is not None
+    if misses and (ref.given or not measured):
+        path, what = misses[0]
+        raise InputFileError(path, None, f"{what} Nothing to evaluate; nothing was written")
 
 
 def headline(metrics: dict) -> list[str]:
