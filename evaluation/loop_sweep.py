@@ -184,11 +184,12 @@ def run_loop_sweep(
     revisit_radius: float = 1.0,
     min_separation: int | None = None,
     progress: Callable[[str], None] | None = None,
+    map_fn: MapFn | None = None,
 ) -> SweepResult:
     """Record the front end over *frames* once (``config.max_scans`` honoured), then :func:`sweep_recorded`.
 
     The grid is validated before the log is read. *progress* is called with a one-line message after
-    the front end and after each setting.
+    the front end and after each setting; *map_fn* runs the settings (:func:`sweep_recorded`).
     """
     from slam.pipeline.loop_replay import record_front_end
 
@@ -202,7 +203,7 @@ def run_loop_sweep(
     if progress is not None:
         progress(f"front end: {len(rec.stamps)} scans, {len(rec.keyframes)} keyframes, {rec.time_s:.1f} s")
     return sweep_recorded(rec, config, sweeps, relations=relations, revisit_radius=revisit_radius,
-                          min_separation=min_separation, progress=progress)
+                          min_separation=min_separation, progress=progress, map_fn=map_fn)
 
 
 def _sequential_map(fn: Callable[..., Any], shared: tuple, items: Sequence[tuple],

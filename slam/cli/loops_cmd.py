@@ -44,6 +44,10 @@ def loops(
     max_scans: int | None = typer.Option(None, "--max-scans", help="Stop after this many scans."),
     topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),
     quiet: bool = typer.Option(False, "--quiet", help="Only the final table."),
+    parallel: bool = typer.Option(False, "--parallel", help="Replay the settings as Ray tasks, one CPU each (the "
+                                  "executor of slam batch: a local Ray, or --address); the rows are the same."),
+    address: str | None = typer.Option(None, "--address", help="With --parallel: a running Ray cluster (auto, "
+                                       "HOST:6379 or ray://HOST:10001); default a local Ray for this command."),
 ) -> None:
     """Loop closure on LOG under each setting of a grid: precision/recall against ground truth (simulated
     logs) or Cartographer's 20 cm / 1° consistency after optimisation (real logs)."""
@@ -67,7 +71,16 @@ def loops(
         if not quiet:
             typer.echo(msg, err=True)
 
-    res = run_loop_sweep(reader.frames(), cfg, sweeps, relations=rel, progress=progress)
+    if parallel:
+        from functools import partial
+
+        from slam.batch.executor import RayExecutor
+
+        with RayExecutor(address) as ex:
+            res = run_loop_sweep(reader.frames(), cfg, sweeps, relations=rel, progress=progress,
+                                 map_fn=partial(ex.map, failures="raise"))
+    else:
+        res = run_loop_sweep(reader.frames(), cfg, sweeps, relations=rel, progress=progress)
     extra = {"log": str(log), "relations": str(rel_path) if rel_path is not None else None}
     write_sweep(out, res, extra)
     typer.echo(f"scans: {res.meta['scans']}  keyframes: {res.meta['keyframes']}  "
