@@ -15,7 +15,8 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["trajectory_map_png", "error_along_png", "roc_png", "timings_png", "map_png", "sweep_png"]
+__all__ = ["trajectory_map_png", "error_along_png", "roc_png", "timings_png", "map_png", "sweep_png", "grouped_bars_png",
+           "lines_png"]
 
 _RC = {
     "font.size": 12,
@@ -208,4 +209,53 @@ def sweep_png(rows: Sequence[dict], swept: Sequence[str], x: str, y: str, xlabel
         ax.grid(True, alpha=0.3)
         if ax.lines:
             ax.legend(loc="lower left", title=f"points labelled by {last}" if others else None)
+        return _png(fig)
+
+
+def grouped_bars_png(groups: dict[str, dict[str, float | None]], ylabel: str, title: str,
+                     reference: dict[str, float] | None = None, reference_label: str = "published") -> bytes:
+    """Bars ``groups[group][label]`` side by side per group (e.g. relation error [m] per log, one bar per
+    setting), with ``reference[group]`` as a hatched grey bar beside them (e.g. a published figure).
+    Missing values (None) leave a gap."""
+    plt = _plt()
+    names = list(groups)
+    labels = list(dict.fromkeys(k for g in groups.values() for k in g))
+    ref = {k: v for k, v in (reference or {}).items() if k in groups and v is not None}
+    n_bars = len(labels) + (1 if ref else 0)
+    width = 0.8 / max(n_bars, 1)
+    x = np.arange(len(names), dtype=float)
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(names) * max(n_bars, 1) * 0.5 + 3), 5))
+        for j, lab in enumerate(labels):
+            vals = np.array([np.nan if groups[g].get(lab) is None else float(groups[g][lab]) for g in names])
+            ax.bar(x - 0.4 + width * (j + 0.5), vals, width, label=lab)
+        if ref:
+            vals = np.array([ref.get(g, np.nan) for g in names], float)
+            ax.bar(x - 0.4 + width * (len(labels) + 0.5), vals, width, color="#bbbbbb", hatch="//",
+                   edgecolor="#555555", label=reference_label)
+        ax.set_xticks(x)
+        ax.set_xticklabels(names, rotation=20 if len(names) > 4 else 0, ha="right" if len(names) > 4 else "center")
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.grid(True, axis="y", alpha=0.3)
+        if labels or ref:
+            ax.legend(fontsize=9)
+        return _png(fig)
+
+
+def lines_png(series: dict[str, list[tuple[float, float]]], xlabel: str, ylabel: str, title: str) -> bytes:
+    """One line per series through its ``(x, y)`` points (sorted by x), e.g. a metric per log against a swept value."""
+    plt = _plt()
+    with plt.rc_context(_RC):
+        fig, ax = plt.subplots(figsize=(7, 5))
+        for label, pts in series.items():
+            pts = sorted(p for p in pts if p[1] is not None and np.isfinite(p[1]))
+            if pts:
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", lw=1.5, ms=6, label=label)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.grid(True, alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=9)
         return _png(fig)
