@@ -427,3 +427,27 @@ def test_ctrl_c_leaves_complete_run_folders_only(tmp_path):
     doc = json.loads((out / "results.json").read_text())
     assert doc["resumed"] == len(finished) and doc["tasks_run"] == 3 - len(finished)
     assert _no_ray_left(ray_tmp) == []
+
+
+def test_example_specs_name_every_log_and_its_reference():
+    """examples/kummerle.yaml: the bundled Intel log and the three benchmark logs with relations, each with its
+    relations file (Cartographer's figure is known for each); examples/devset.yaml: those logs, the Killian bag
+    and every log of ../shared/data/slam2d_devset, the GMapping-corrected ones scan-only. Needs ../shared/data
+    (a missing log fails the spec)."""
+    from evaluation.published import recognise_dataset
+    from slam.batch.spec import load_spec
+    from slam.cli.run_eval import log_stem
+
+    k = load_spec(REPO / "examples" / "kummerle.yaml", log_stem)
+    refs = {e.name: e.relations or e.found_relations for e in k.logs}
+    assert list(refs) == ["intel-bundled", "intel", "mit-csail", "fr-clinic"] and [s.id for s in k.settings] == ["default"]
+    assert [recognise_dataset(r) for r in refs.values()] == ["intel", "intel", "mit-csail", "fr-clinic"]
+    d = load_spec(REPO / "examples" / "devset.yaml", log_stem)
+    devset = REPO.parent / "shared" / "data" / "slam2d_devset"
+    logs = {p.resolve() for p in devset.rglob("*") if p.name.endswith((".clf", ".clf.gz", ".log.gz"))}
+    assert logs and logs <= {e.path for e in d.logs}
+    assert {e.path for e in k.logs if e.name != "intel-bundled"} <= {e.path for e in d.logs}
+    for e in d.logs:
+        scan_only = e.path.parent.name == "gmapping-corrected"
+        assert e.values == ({"odometry.use_wheel_odometry": False, "odometry.wheel_edges": False} if scan_only else {})
+    assert {e.name: e.relations for e in d.logs}["killian"].name == "mit-killian.relations"
