@@ -47,5 +47,10 @@ class MapFormatError(InputFileError):
     """A map file (map_server yaml/pgm, npz) is malformed."""
 
 
+class OutputError(InputFileError):
+    """An output path that cannot be written: an existing file or folder of the wrong kind, a folder nothing
+    can be created in, a full disk, or a folder that is not an earlier output of the same command."""
+
+
 class ConfigError(GpslamError, ValueError):
     """An invalid configuration value."""

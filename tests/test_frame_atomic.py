@@ -95,8 +95,8 @@ def default_sigint():
 
 
 def test_ctrl_c_while_moving_in_is_held_until_every_file_is_there(tmp_path, monkeypatch, default_sigint):
-    """A real SIGINT arriving while a run's files replace a previous run's: the KeyboardInterrupt comes
-    only after the last file is in place (all new, none old), and no temporary folder is left."""
+    """A real SIGINT arriving while a run's folder replaces a previous run's: the KeyboardInterrupt comes
+    only after the new folder is in place (all new files, none old), and no temporary folder is left."""
     import os
     import signal
 
@@ -106,21 +106,20 @@ def test_ctrl_c_while_moving_in_is_held_until_every_file_is_there(tmp_path, monk
     with atomic_directory(out) as d:
         for name in ("a.txt", "b.txt", "c.txt"):
             (d / name).write_text("old")
-    real_replace = os.replace
+    real_replace = atomic._replace_folder
     calls = []
 
-    def replace_and_interrupt(src, dst):  # the user presses Ctrl-C as the first file is moved
-        if not calls:
-            os.kill(os.getpid(), signal.SIGINT)
-        calls.append(dst)
-        real_replace(src, dst)
+    def replace_and_interrupt(new, target):  # the user presses Ctrl-C as the folder is moved
+        os.kill(os.getpid(), signal.SIGINT)
+        calls.append(target)
+        return real_replace(new, target)
 
-    monkeypatch.setattr(atomic.os, "replace", replace_and_interrupt)
+    monkeypatch.setattr(atomic, "_replace_folder", replace_and_interrupt)
     with pytest.raises(KeyboardInterrupt):
         with atomic_directory(out) as d:
             for name in ("a.txt", "b.txt", "c.txt"):
                 (d / name).write_text("new")
-    assert len(calls) == 3
+    assert calls == [out]
     assert [(out / n).read_text() for n in ("a.txt", "b.txt", "c.txt")] == ["new"] * 3
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is restored

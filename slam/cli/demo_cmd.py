@@ -23,11 +23,14 @@ def demo(
     """Run SLAM on the bundled Intel log and print the relation error beside the published ones."""
     from evaluation.published import recognise_dataset
     from evaluation.relations import evaluate_relations, read_relations
+    from registration.atomic import check_output_dir
     from slam.cli.eval_cmd import relations_table
     from slam.cli.run_cmd import _config, run_log
+    from slam.pipeline.outputs import RUN_MARKER
     from slam.trajectory_io import read_tum
 
     cfg = _config(None, {"max_scans": max_scans})
+    check_output_dir(out, RUN_MARKER)
     typer.echo(f"slam run {log} → {out} (this takes a few minutes on 2 cores for the whole Intel log)")
     s = run_log(log, out, cfg, None, quiet)
     typer.echo(f"scans: {s['scans']}  keyframes: {s['keyframes']}  loop_closures: {s['loop_closures']}  "

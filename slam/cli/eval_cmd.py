@@ -56,6 +56,14 @@ def _echo_pairs(pairs: dict[str, Any]) -> None:
         typer.echo(f"{k}: {fmt_num(v)}")
 
 
+def _check_json(path: Path | None) -> None:
+    """Before any work: the --json path can be written."""
+    if path is not None:
+        from registration.atomic import check_output_file
+
+        check_output_file(path)
+
+
 def _save_json(path: Path | None, obj: Any) -> None:
     if path is None:
         return
@@ -85,6 +93,7 @@ def ape_cmd(
     json_out: Path | None = _JSON,
 ) -> None:
     """Absolute pose error (evo's definition): prints rmse, mean, median, max, std, min, sse."""
+    _check_json(json_out)
     from evaluation.ape_rpe import evaluate_ape
     from slam.trajectory_io import read_trajectory
 
@@ -113,6 +122,7 @@ def rpe_cmd(
     json_out: Path | None = _JSON,
 ) -> None:
     """Relative pose error (evo's definition): prints rmse, mean, median, max, std, min, sse."""
+    _check_json(json_out)
     from evaluation.ape_rpe import evaluate_rpe
     from slam.trajectory_io import read_trajectory
 
@@ -161,6 +171,7 @@ def relations_cmd(
     json_out: Path | None = _JSON,
 ) -> None:
     """Kümmerle relation metric: trans/rot mean ± std (abs and squared), missing-stamp count, published numbers."""
+    _check_json(json_out)
     from evaluation.published import PUBLISHED, recognise_dataset
     from evaluation.relations import evaluate_relations, read_relations
     from slam.trajectory_io import read_trajectory
@@ -212,6 +223,7 @@ def loops_cmd(
     json_out: Path | None = _JSON,
 ) -> None:
     """Loop-closure precision (violated by ≤ 20 cm and ≤ 1° after optimisation); with --gt, precision and recall."""
+    _check_json(json_out)
     from evaluation.crosscheck import load_solution
     from evaluation.loops import loop_edges_from_graph, score_against_truth, score_loops
     from slam.graph import read_graph
@@ -253,6 +265,7 @@ def crosscheck_cmd(
     json_out: Path | None = _JSON,
 ) -> None:
     """Both objectives (SE-Sync, GTSAM χ²) of two solutions and their pose differences, printed as JSON."""
+    _check_json(json_out)
     from evaluation.crosscheck import crosscheck, load_solution
     from slam.graph import read_graph
 
@@ -276,12 +289,15 @@ def report_cmd(
     """Write report.html (figures inline) and metrics.json; print the metrics as 'key: value' lines."""
     from evaluation.report import flatten_metrics, write_report
 
+    od = out if out is not None else result_dir
+    for name in ("report.html", "metrics.json"):
+        _check_json(od / name)
+
     rep = write_report(result_dir, gt, relations, gt_map, out)
     for k, v in flatten_metrics(rep.metrics).items():
         typer.echo(f"{k}: {fmt_num(v)}")
     for n in rep.notes:
         typer.echo(f"note: {n}")
-    od = out if out is not None else result_dir
     typer.echo(f"report: {od / 'report.html'}")
     typer.echo(f"metrics: {od / 'metrics.json'}")
 

@@ -8,6 +8,10 @@ from pathlib import Path
 import typer
 
 
+#: Files every map folder holds: an existing folder with them is an earlier map, which a new one replaces.
+MAP_MARKER = ("mapping_config.yaml", "map.npz")
+
+
 class Method(str, Enum):
     fastgpom = "fastgpom"
     gpom = "gpom"
@@ -73,16 +77,18 @@ def map_command(
     from mapping.grid import GridGeometry
     from mapping.logodds import LogOddsGrid
     from mapping.occupancy_map import export_map, write_occupancy_grid
-    from registration.atomic import atomic_open
+    from registration.atomic import atomic_directory, check_output_dir
+    from registration.config import load_yaml
     from registration.errors import ConfigError
     from slam.logs import open_log
     from slam.logs.mcap_writer import McapLogWriter
 
     if every < 1 or not resolution > 0 or not max_range > 0:
         raise ConfigError("--every must be >= 1, --resolution and --max-range > 0")
+    check_output_dir(out, MAP_MARKER)
     cfg = MappingConfig()
     if config is not None:
-        cfg = MappingConfig.model_validate(yaml.safe_load(config.read_text()) or {})
+        cfg = load_yaml(MappingConfig, config)
     cfg = cfg.model_copy(update={"method": method.value, "resolution": resolution})
     reader = open_log(log, topic)
     frames = [clip_range(f, max_range) for i, f in enumerate(reader.frames()) if i % every == 0]
@@ -99,12 +105,13 @@ def map_command(
             mapper.update(f, T)
     dt = time.perf_counter() - t0
     m = mapper.to_map().crop_observed()
-    export_map(m, out, cfg.occupied_thresh, cfg.free_thresh)
-    with McapLogWriter(out / "map.mcap") as w:
-        write_occupancy_grid(m, w, stamp=float(pairs[-1][0].stamp), occupied_thresh=cfg.occupied_thresh,
-                             free_thresh=cfg.free_thresh)
-    with atomic_open(out / "mapping_config.yaml") as fh:
-        yaml.safe_dump(cfg.model_dump(mode="json"), fh, sort_keys=False)
+    with atomic_directory(out, MAP_MARKER) as tmp:  # all files or none; an earlier map folder is replaced
+        export_map(m, tmp, cfg.occupied_thresh, cfg.free_thresh)
+        with McapLogWriter(tmp / "map.mcap") as w:
+            write_occupancy_grid(m, w, stamp=float(pairs[-1][0].stamp), occupied_thresh=cfg.occupied_thresh,
+                                 free_thresh=cfg.free_thresh)
+        with open(tmp / "mapping_config.yaml", "w") as fh:
+            yaml.safe_dump(cfg.model_dump(mode="json"), fh, sort_keys=False)
     typer.echo(f"method: {method.value}")
     typer.echo(f"scans: {len(pairs)}")
     typer.echo(f"grid: {m.geometry.shape[1]}x{m.geometry.shape[0]} at {resolution} m")
@@ -121,8 +128,11 @@ def eval_map(
     from mapping.mapserver import read_map_server
     from mapping.occupancy_map import load_npz
     from mapping.roc import map_roc, resample_to_grid
+    from registration.atomic import check_output_file
     from registration.errors import MapFormatError
 
+    if plot is not None:
+        check_output_file(plot)
     m = load_npz(map_npz)
     gt = read_map_server(gt_yaml)
     if abs(gt.origin[2]) > 1e-12:

@@ -128,7 +128,8 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
 
 def run(
     log: Path = typer.Argument(..., help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence."),
-    out: Path = typer.Option(Path("out/run"), "--out", help="Output folder (written atomically)."),
+    out: Path = typer.Option(Path("out/run"), "--out", help="Output folder (written atomically; an earlier run's "
+                             "folder there is replaced whole)."),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration (see config.yaml of any run)."),
     odometry: str | None = typer.Option(None, "--odometry", help="auto (default: KISS-ICP for 3D, our ICP for 2D), kiss or icp."),
     backend: str | None = typer.Option(None, "--backend", help="gtsam (iSAM2 + batch LM) or chordal (batch)."),
@@ -145,6 +146,9 @@ def run(
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Run SLAM on LOG: odometry, keyframes, verified loop closures, pose graph, Fast-GPOM map, all outputs."""
+    from registration.atomic import check_output_dir
+    from slam.pipeline.outputs import RUN_MARKER
+
     overrides = {"odometry.method": odometry, "backend.kind": backend, "max_scans": max_scans,
                  "on_error": on_error.value if on_error is not None else None}
     if map_method is not None:
@@ -152,6 +156,7 @@ def run(
         if map_method != "none":
             overrides["mapping.params.method"] = map_method
     cfg = _config(config, overrides)
+    check_output_dir(out, RUN_MARKER)
     reference = None
     if evaluate or relations is not None or gt is not None:
         from slam.logs import open_log

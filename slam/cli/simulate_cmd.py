@@ -23,8 +23,11 @@ def simulate(
 
     from evaluation.sim import LASER_PRESETS, load_world
     from evaluation.sim.simulate import DEFAULT_ODOM_NOISE, map_paths, simulate as run_sim, write_simulated_log
+    from registration.atomic import check_output_file
     from registration.errors import ConfigError
 
+    for path in (out, *map_paths(out)):
+        check_output_file(path)
     if sensor not in LASER_PRESETS:
         raise ConfigError(f"--sensor must be one of {', '.join(LASER_PRESETS)}, got {sensor!r}")
     alphas = DEFAULT_ODOM_NOISE

@@ -21,12 +21,15 @@ def solve(
     """Print ``{"sesync_objective", "gtsam_error", "iterations", "time_s", ...}`` on one line."""
     import json
 
+    from registration.atomic import check_output_file
     from registration.errors import ConfigError, GraphFormatError
     from slam.graph import GraphError, RobustKernel, read_graph, write_g2o
     from slam.graph.connectivity import disconnection
     from slam.graph.costs import gtsam_error, sesync_objective
     from slam.graph.init import initial_poses
 
+    if out is not None:
+        check_output_file(out)
     if backend not in ("gtsam", "chordal"):
         raise ConfigError(f"--backend must be gtsam or chordal, got {backend!r}")
     if robust not in ("none", "huber", "cauchy"):

@@ -5,7 +5,7 @@ Files: ``trajectory.tum`` (optimised pose of every scan), ``odometry.tum`` (fron
 (graph node id → scan stamp), map files (``map.pgm/.yaml/.png``, ``variance.png``, ``map.npz``),
 ``points.ply`` (3D logs), ``result.mcap`` (OccupancyGrid, Paths, TF, keyframe scans; opens in
 Foxglove), ``summary.json`` and ``config.yaml``. Everything is first written into a temporary
-folder beside the target and moved in only when complete.
+folder beside the target and moved in only when complete, replacing an earlier run's folder whole.
 """
 
 from __future__ import annotations
@@ -21,6 +21,9 @@ from registration.atomic import atomic_directory
 
 from .config import SlamConfig
 from .run import SlamResult
+
+#: Files every run folder holds: an existing folder with them is an earlier run, which a new run replaces.
+RUN_MARKER = ("summary.json", "config.yaml")
 
 
 def _versions() -> dict[str, str]:
@@ -86,7 +89,7 @@ def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: Slam
     from slam.trajectory_io import Trajectory, write_tum
 
     out = Path(out_dir)
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, RUN_MARKER) as tmp:
         write_tum(tmp / "trajectory.tum", Trajectory(result.stamps, result.poses, "slam"))
         write_tum(tmp / "odometry.tum", Trajectory(result.stamps, result.odometry, "odometry"))
         if result.wheel is not None:
