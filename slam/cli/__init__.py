@@ -1,12 +1,13 @@
 """The ``slam`` command line (typer). Each command lives in its own module of this package.
 
 A module registers its commands with ``register(app, eval_app)``; heavy imports happen inside
-the command functions so that ``slam --help`` stays fast. Any :class:`GpslamError` is printed
-as one line ``error: <file>:<position>: <what>`` on stderr with exit status 2.
+the command functions so that ``slam --help`` stays fast. Any :class:`GpslamError`, and any bad command
+line, is printed as one line ``error: <file>:<position>: <what>`` on stderr with exit status 2.
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
 import sys
 import warnings
@@ -15,6 +16,8 @@ import typer
 
 from registration.errors import GpslamError
 from slam import __version__
+
+from . import signals
 
 # Command modules, in help order. Each defines register(app, eval_app).
 COMMAND_MODULES = (
@@ -76,32 +79,63 @@ def _warning_line(message, category, filename, lineno, file=None, line=None) -> 
     print(f"warning: {' '.join(str(message).split())}", file=sys.stderr if file is None else file)
 
 
+# click's base of every command-line error (usage errors, bad option values); typer vendors click, and
+# exports only BadParameter of its exceptions.
+_USAGE_ERRORS = tuple(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+def _error(text: str) -> None:
+    print(f"error: {' '.join(str(text).split())}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point: run the typer app, turning project errors into one line and exit 2, and
-    showing warnings as one ``warning:`` line each."""
-    with warnings.catch_warnings():
+    """Console entry point: run the typer app and exit with its status.
+
+    Project errors and bad command lines (click's usage errors: an unknown option, a bad option value) are
+    one ``error:`` line and exit 2; warnings are one ``warning:`` line each; SIGINT, SIGTERM and SIGHUP end
+    the command cleanly with 128 + the signal number (:mod:`slam.cli.signals`). Run as the console script
+    (*argv* None), the signals are ignored once the command is done, so the interpreter's shutdown cannot be
+    killed by a late one.
+    """
+    with warnings.catch_warnings(), signals.terminations() as received:
         warnings.showwarning = _warning_line
-        _main(argv)
+        try:
+            code = _run(argv, received)
+        finally:
+            if argv is None:
+                signals.ignore_held_signals()
+    sys.exit(code)
 
 
-def _main(argv: list[str] | None) -> None:
+def _run(argv: list[str] | None, received: list[int]) -> int:
+    """The exit status of the command (errors printed)."""
     try:
-        app(args=argv, prog_name="slam")
+        rv = app(args=argv, prog_name="slam", standalone_mode=False)
+    except _USAGE_ERRORS as exc:
+        ctx = getattr(exc, "ctx", None)
+        if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:  # 'slam' or 'slam eval' alone
+            typer.echo(ctx.get_help())
+            return 2
+        hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+        _error(f"{exc.format_message()}{hint}")
+        return 2
     except GpslamError as exc:
-        msg = " ".join(str(exc).split())
-        print(f"error: {msg}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        sys.exit(130)
-    except SystemExit as exc:
-        # typer turns a KeyboardInterrupt inside a command into a silent exit 130 (and no command
-        # exits 130 on its own): say why.
-        if exc.code == 130:
-            print("error: interrupted", file=sys.stderr)
-        raise
+        _error(str(exc))
+        return 2
+    except (KeyboardInterrupt, typer.Abort):
+        _error(signals.message(received))
+        return signals.exit_code(received)
+    except OSError as exc:  # what no reader or writer turned into a project error: still one line
+        if exc.errno == errno.EPIPE:  # stdout closed early (slam ... | head): nothing to say
+            return 1
+        _error(f"{exc.filename}: {exc.strerror}" if exc.filename is not None else str(exc))
+        return 2
     except Exception as exc:
         if not _interrupted(exc):
             raise
-        print("error: interrupted", file=sys.stderr)
-        sys.exit(130)
+        _error(signals.message(received))
+        return signals.exit_code(received)
+    if rv == 130:  # typer turns a KeyboardInterrupt inside a command into exit 130 (no command exits 130 itself)
+        _error(signals.message(received))
+        return signals.exit_code(received)
+    return rv if isinstance(rv, int) else 0
