@@ -17,7 +17,7 @@ def demo(
     out: Path = typer.Option(Path("out/demo"), "--out", help="Folder for the demo's results."),
     log: Path = typer.Option(REPO_DATA / "intel.clf.bz2", "--log", help="Log to run on (default: the bundled Intel log)."),
     relations: Path = typer.Option(REPO_DATA / "intel.relations", "--relations", help="Ground-truth relations of the log."),
-    max_scans: int | None = typer.Option(None, "--max-scans", help="Stop after this many scans (a quick look)."),
+    max_scans: int | None = typer.Option(None, "--max-scans", min=1, help="Stop after this many scans (a quick look)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Run SLAM on the bundled Intel log and print the relation error beside the published ones."""

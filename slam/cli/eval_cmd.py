@@ -13,6 +13,8 @@ from typing import Any
 
 import typer
 
+from .options import real
+
 
 class _Align(str, Enum):
     none = "none"
@@ -84,8 +86,8 @@ def ape_cmd(
     est: Path = typer.Argument(..., help="Estimated trajectory (TUM, KITTI or g2o vertices)."),
     ref: Path = typer.Argument(..., help="Reference trajectory."),
     align: _Align = typer.Option(_Align.none, "--align", help="Umeyama alignment of EST onto REF (evo_ape default: none)."),
-    relation: _Relation = typer.Option(_Relation.trans, "--relation", help="Error part: trans [m], rot_deg, rot_rad, rot_part, full."),
-    max_diff: float = typer.Option(0.01, "--max-diff", help="Largest stamp difference for association [s]."),
+    relation: _Relation = typer.Option(_Relation.trans, "--relation", help="Error part: trans (m), rot_deg, rot_rad, rot_part, full."),
+    max_diff: float = typer.Option(0.01, "--max-diff", parser=real(0.0), help="Largest stamp difference for association (s)."),
     est_format: _Fmt = typer.Option(_Fmt.auto, "--est-format"),
     ref_format: _Fmt = typer.Option(_Fmt.auto, "--ref-format"),
     est_stamps: Path | None = _EST_STAMPS,
@@ -108,13 +110,13 @@ def ape_cmd(
 def rpe_cmd(
     est: Path = typer.Argument(..., help="Estimated trajectory (TUM, KITTI or g2o vertices)."),
     ref: Path = typer.Argument(..., help="Reference trajectory."),
-    delta: float = typer.Option(1.0, "--delta", help="Pair distance (frames or metres)."),
+    delta: float = typer.Option(1.0, "--delta", parser=real(0.0, above=True), help="Pair distance (frames or metres)."),
     delta_unit: _DeltaUnit = typer.Option(_DeltaUnit.frames, "--delta-unit", help="frames, or m of travelled path."),
     relation: _Relation = typer.Option(_Relation.trans, "--relation"),
     align: _Align = typer.Option(_Align.none, "--align"),
     all_pairs: bool = typer.Option(False, "--all-pairs", help="Every start pose instead of consecutive pairs."),
     pairs_from_reference: bool = typer.Option(False, "--pairs-from-reference", help="Metric pairs from REF's path (default: EST's, as evo)."),
-    max_diff: float = typer.Option(0.01, "--max-diff", help="Largest stamp difference for association [s]."),
+    max_diff: float = typer.Option(0.01, "--max-diff", parser=real(0.0), help="Largest stamp difference for association (s)."),
     est_format: _Fmt = typer.Option(_Fmt.auto, "--est-format"),
     ref_format: _Fmt = typer.Option(_Fmt.auto, "--ref-format"),
     est_stamps: Path | None = _EST_STAMPS,
@@ -164,7 +166,7 @@ def relations_table(result: Any, dataset: str | None) -> list[str]:
 def relations_cmd(
     traj: Path = typer.Argument(..., help="Estimated trajectory with scan stamps (TUM, or KITTI/g2o with --stamps)."),
     relations: Path = typer.Argument(..., help="Relations file 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
-    stamp_tol: float = typer.Option(1e-3, "--stamp-tol", help="Stamp matching tolerance [s]."),
+    stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
     traj_format: _Fmt = typer.Option(_Fmt.auto, "--format"),
     stamps: Path | None = typer.Option(None, "--stamps", help=_STAMPS_HELP),
     dataset: str | None = typer.Option(None, "--dataset", help="Dataset key for published numbers (default: from the file name)."),
@@ -215,11 +217,12 @@ def loops_cmd(
     poses: Path | None = typer.Option(None, "--poses", help="Optimised poses (g2o/TUM); default: the graph's vertices."),
     gt: Path | None = typer.Option(None, "--gt", help="Ground-truth trajectory (TUM) for precision/recall."),
     node_stamps: Path | None = typer.Option(None, "--node-stamps", help="'id stamp' per node, to find the nodes in --gt."),
-    trans_tol: float = typer.Option(0.20, "--trans-tol", help="Allowed violation [m] (Hess et al. 2016: 0.20)."),
-    rot_tol: float = typer.Option(1.0, "--rot-tol", help="Allowed violation [deg] (Hess et al. 2016: 1.0)."),
-    revisit_radius: float = typer.Option(1.0, "--revisit-radius", help="True revisit distance [m] (with --gt)."),
-    min_separation: int = typer.Option(30, "--min-separation", help="Smallest node-index gap of a revisit (with --gt)."),
-    max_diff: float = typer.Option(0.01, "--max-diff", help="Stamp tolerance for --node-stamps [s]."),
+    trans_tol: float = typer.Option(0.20, "--trans-tol", parser=real(0.0), help="Allowed violation in m (Hess et al. 2016: 0.20)."),
+    rot_tol: float = typer.Option(1.0, "--rot-tol", parser=real(0.0), help="Allowed violation in degrees (Hess et al. 2016: 1.0)."),
+    revisit_radius: float = typer.Option(1.0, "--revisit-radius", parser=real(0.0, above=True),
+                                         help="True revisit distance in m (with --gt)."),
+    min_separation: int = typer.Option(30, "--min-separation", min=1, help="Smallest node-index gap of a revisit (with --gt)."),
+    max_diff: float = typer.Option(0.01, "--max-diff", parser=real(0.0), help="Stamp tolerance for --node-stamps (s)."),
     json_out: Path | None = _JSON,
 ) -> None:
     """Loop-closure precision (violated by ≤ 20 cm and ≤ 1° after optimisation); with --gt, precision and recall."""

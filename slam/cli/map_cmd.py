@@ -7,6 +7,8 @@ from pathlib import Path
 
 import typer
 
+from .options import real
+
 
 #: Files every map folder holds: an existing folder with them is an earlier map, which a new one replaces.
 MAP_MARKER = ("mapping_config.yaml", "map.npz")
@@ -56,12 +58,13 @@ def map_command(
     log: Path = typer.Argument(..., help="Robot log (CARMEN, MCAP, ROS 1 bag) with 2D laser scans."),
     out: Path = typer.Option(..., "--out", help="Output directory."),
     method: Method = typer.Option(Method.fastgpom, "--method", help="fastgpom, gpom or logodds."),
-    resolution: float = typer.Option(0.05, "--resolution", help="Cell size in metres."),
+    resolution: float = typer.Option(0.05, "--resolution", parser=real(0.0, above=True), help="Cell size in metres."),
     poses: str = typer.Option("ground_truth", "--poses", help="ground_truth, odometry, or a TUM trajectory file."),
     topic: str | None = typer.Option(None, "--topic", help="Laser topic (MCAP / ROS 1)."),
-    every: int = typer.Option(1, "--every", help="Use every n-th scan."),
-    max_range: float = typer.Option(10.0, "--max-range", help="Ranges beyond this (m) count as no return."),
-    max_dt: float = typer.Option(0.05, "--max-dt", help="Largest |scan stamp − TUM stamp| accepted (s)."),
+    every: int = typer.Option(1, "--every", min=1, help="Use every n-th scan."),
+    max_range: float = typer.Option(10.0, "--max-range", parser=real(0.0, above=True),
+                                    help="Ranges beyond this (m) count as no return."),
+    max_dt: float = typer.Option(0.05, "--max-dt", parser=real(0.0), help="Largest |scan stamp − TUM stamp| accepted (s)."),
     config: Path | None = typer.Option(None, "--config", help="Mapping configuration YAML (mapping.config.MappingConfig)."),
 ) -> None:
     """Build an occupancy map from a log with given poses; writes map.pgm/.yaml/.png/.npz, variance.png, map.mcap."""
@@ -83,8 +86,6 @@ def map_command(
     from slam.logs import open_log
     from slam.logs.mcap_writer import McapLogWriter
 
-    if every < 1 or not resolution > 0 or not max_range > 0:
-        raise ConfigError("--every must be >= 1, --resolution and --max-range > 0")
     check_output_dir(out, MAP_MARKER)
     cfg = MappingConfig()
     if config is not None:

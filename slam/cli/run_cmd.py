@@ -9,6 +9,11 @@ import typer
 
 
 def _config(config: Path | None, overrides: dict):  # type: ignore[no-untyped-def]
+    """The configuration of a run: *config* (YAML) or the defaults, with the non-None *overrides*
+    (``"section.key": value``) applied. Raises ConfigError naming the setting a value does not fit."""
+    from pydantic import ValidationError
+
+    from registration.errors import ConfigError
     from slam.pipeline.config import SlamConfig
 
     cfg = SlamConfig.from_yaml(config) if config is not None else SlamConfig()
@@ -21,12 +26,34 @@ def _config(config: Path | None, overrides: dict):  # type: ignore[no-untyped-de
         for k in keys[:-1]:
             node = node[k]
         node[keys[-1]] = value
-    return SlamConfig.model_validate(data)
+    try:
+        return SlamConfig.model_validate(data)
+    except ValidationError as exc:
+        what = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"invalid setting: {what}") from None
 
 
 class OnError(str, Enum):
     stop = "stop"
     skip = "skip"
+
+
+class Odometry(str, Enum):
+    auto = "auto"
+    kiss = "kiss"
+    icp = "icp"
+
+
+class Backend(str, Enum):
+    gtsam = "gtsam"
+    chordal = "chordal"
+
+
+class MapMethod(str, Enum):
+    fastgpom = "fastgpom"
+    gpom = "gpom"
+    logodds = "logodds"
+    none = "none"
 
 
 def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = False,  # type: ignore[no-untyped-def]
@@ -131,11 +158,11 @@ def run(
     out: Path = typer.Option(Path("out/run"), "--out", help="Output folder (written atomically; an earlier run's "
                              "folder there is replaced whole)."),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration (see config.yaml of any run)."),
-    odometry: str | None = typer.Option(None, "--odometry", help="auto (default: KISS-ICP for 3D, our ICP for 2D), kiss or icp."),
-    backend: str | None = typer.Option(None, "--backend", help="gtsam (iSAM2 + batch LM) or chordal (batch)."),
-    map_method: str | None = typer.Option(None, "--map", help="fastgpom, gpom, logodds or none."),
+    odometry: Odometry | None = typer.Option(None, "--odometry", help="auto (default: KISS-ICP for 3D, our ICP for 2D), kiss or icp."),
+    backend: Backend | None = typer.Option(None, "--backend", help="gtsam (iSAM2 + batch LM) or chordal (batch)."),
+    map_method: MapMethod | None = typer.Option(None, "--map", help="fastgpom, gpom, logodds or none."),
     topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),
-    max_scans: int | None = typer.Option(None, "--max-scans", help="Stop after this many scans."),
+    max_scans: int | None = typer.Option(None, "--max-scans", min=1, help="Stop after this many scans."),
     on_error: OnError | None = typer.Option(None, "--on-error", help="A corrupt record in the log: stop the run (default; "
                                             "nothing is written) or skip it and count it in summary.json."),
     evaluate: bool = typer.Option(False, "--eval", help="Evaluate the run against <log stem>.relations beside the log "
@@ -149,12 +176,13 @@ def run(
     from registration.atomic import check_output_dir
     from slam.pipeline.outputs import RUN_MARKER
 
-    overrides = {"odometry.method": odometry, "backend.kind": backend, "max_scans": max_scans,
+    overrides = {"odometry.method": odometry.value if odometry is not None else None,
+                 "backend.kind": backend.value if backend is not None else None, "max_scans": max_scans,
                  "on_error": on_error.value if on_error is not None else None}
     if map_method is not None:
-        overrides["mapping.enabled"] = map_method != "none"
-        if map_method != "none":
-            overrides["mapping.params.method"] = map_method
+        overrides["mapping.enabled"] = map_method is not MapMethod.none
+        if map_method is not MapMethod.none:
+            overrides["mapping.params.method"] = map_method.value
     cfg = _config(config, overrides)
     check_output_dir(out, RUN_MARKER)
     reference = None

@@ -6,17 +6,22 @@ from pathlib import Path
 
 import typer
 
+from .options import alphas as parse_alphas
+from .options import real
+
 
 def simulate(
     world: str = typer.Argument(..., help="rooms | corridor | obstacles, or a ROS map_server .yaml file."),
     out: Path = typer.Option(..., "--out", "-o", help="Output MCAP log; the ground-truth map goes beside it as <stem>_map.pgm/.yaml."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the world, the path and all noise."),
-    scans: int = typer.Option(1000, "--scans", help="Number of laser scans."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the world, the path and all noise."),
+    scans: int = typer.Option(1000, "--scans", min=1, help="Number of laser scans."),
     sensor: str = typer.Option("fastgpom", "--sensor", help="Laser preset: fastgpom, sick_lms, hokuyo_utm30."),
-    range_noise: float | None = typer.Option(None, "--range-noise", help="Gaussian range noise σ in m (default: the preset's)."),
+    range_noise: float | None = typer.Option(None, "--range-noise", parser=real(0.0),
+                                             help="Gaussian range noise σ in m (default: the preset's)."),
     odom_noise: str | None = typer.Option(None, "--odom-noise",
                                           help="Odometry noise α1,α2,α3,α4 (Probabilistic Robotics §5.4), default 0.005,0.0005,0.01,0.001."),
-    resolution: float | None = typer.Option(None, "--resolution", help="World cell size in m (procedural default 0.05; a yaml map is resampled)."),
+    resolution: float | None = typer.Option(None, "--resolution", parser=real(0.0, above=True),
+                                            help="World cell size in m (procedural default 0.05; a yaml map is resampled)."),
 ) -> None:
     """Simulate a robot touring WORLD with a 2D laser and drifting wheel odometry; write an MCAP log."""
     import time
@@ -33,11 +38,9 @@ def simulate(
     alphas = DEFAULT_ODOM_NOISE
     if odom_noise is not None:
         try:
-            alphas = tuple(float(v) for v in odom_noise.split(","))
-        except ValueError:
-            raise ConfigError(f"--odom-noise must be four comma-separated numbers, got {odom_noise!r}") from None
-        if len(alphas) != 4:
-            raise ConfigError(f"--odom-noise must be four comma-separated numbers, got {odom_noise!r}")
+            alphas = parse_alphas(odom_noise)
+        except ValueError as exc:
+            raise ConfigError(f"--odom-noise: {exc} (four finite numbers >= 0)") from None
     t0 = time.perf_counter()
     w = load_world(world, resolution=resolution, seed=seed)
     sim = run_sim(w, n_scans=scans, spec=LASER_PRESETS[sensor], seed=seed, range_noise=range_noise, odom_noise=alphas)

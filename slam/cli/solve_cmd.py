@@ -2,17 +2,38 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 
 import typer
 
+from .options import real
+
+
+class Backend(str, Enum):
+    gtsam = "gtsam"
+    chordal = "chordal"
+
+
+class Init(str, Enum):
+    odometry = "odometry"
+    chordal = "chordal"
+    file = "file"
+
+
+class Robust(str, Enum):
+    none = "none"
+    huber = "huber"
+    cauchy = "cauchy"
+
 
 def solve(
     graph_path: Path = typer.Argument(..., metavar="GRAPH", help="g2o (VERTEX_SE2/EDGE_SE2, SE3:QUAT) or TORO (VERTEX2/EDGE2) file."),
-    backend: str = typer.Option("gtsam", "--backend", help="gtsam (Levenberg-Marquardt) or chordal (our Gauss-Newton)."),
-    init: str = typer.Option("chordal", "--init", help="odometry, chordal or file (the file's VERTEX poses)."),
-    robust: str = typer.Option("none", "--robust", help="none, huber or cauchy: kernel on loop edges (gtsam only)."),
-    robust_k: float = typer.Option(1.0, "--robust-k", help="Kernel threshold in standard deviations."),
+    backend: Backend = typer.Option(Backend.gtsam, "--backend", help="gtsam (Levenberg-Marquardt) or chordal (our Gauss-Newton)."),
+    init: Init = typer.Option(Init.chordal, "--init", help="odometry, chordal or file (the file's VERTEX poses)."),
+    robust: Robust = typer.Option(Robust.none, "--robust", help="none, huber or cauchy: kernel on loop edges (gtsam only)."),
+    robust_k: float = typer.Option(1.0, "--robust-k", parser=real(0.0, above=True),
+                                   help="Kernel threshold in standard deviations (> 0)."),
     out: Path | None = typer.Option(None, "--out", help="Write the optimised graph (g2o) here."),
     allow_disconnected: bool = typer.Option(False, "--allow-disconnected", help="Solve a graph whose parts no "
                                             "edge joins, holding each part at its first node (their relative "
@@ -30,10 +51,7 @@ def solve(
 
     if out is not None:
         check_output_file(out)
-    if backend not in ("gtsam", "chordal"):
-        raise ConfigError(f"--backend must be gtsam or chordal, got {backend!r}")
-    if robust not in ("none", "huber", "cauchy"):
-        raise ConfigError(f"--robust must be none, huber or cauchy, got {robust!r}")
+    backend, init, robust = backend.value, init.value, robust.value  # type: ignore[assignment]
     if robust != "none" and backend != "gtsam":
         raise ConfigError("--robust needs --backend gtsam (the chordal solver minimises the plain SE-Sync objective)")
     graph = read_graph(graph_path)
