@@ -9,26 +9,17 @@ import pytest
 
 from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
 from registration import geometry as geo
-from slam.cli import main
 from slam.graph import PoseGraph, write_g2o
 from slam.trajectory_io import Trajectory, write_tum
+from tests.cli_helpers import one_error_line
+from tests.cli_helpers import slam as _slam
 
 pytestmark = pytest.mark.xdist_group("pipeline")
 
 
-def _slam(args, capsys):
-    with pytest.raises(SystemExit) as ei:
-        main([str(a) for a in args])
-    cap = capsys.readouterr()
-    return ei.value.code or 0, cap.out, cap.err
-
-
 def _one_error(code, out, err, *names):
-    lines = err.strip().splitlines()
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), err
+    one_error_line(code, err, *names)
     assert "nan" not in out
-    for n in names:
-        assert str(n) in lines[0]
 
 
 def _traj(n=30):

@@ -6,19 +6,15 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from registration import geometry as geo
-from slam.cli import main
 from slam.graph import PoseGraph, read_g2o, write_g2o
+from tests.cli_helpers import slam
 from tests.graph_helpers import synthetic_graph
 
 
 def _solve(args, capsys):
-    with pytest.raises(SystemExit) as ei:
-        main(["solve", *args])
-    cap = capsys.readouterr()
-    return ei.value.code or 0, cap.out, cap.err
+    return slam(["solve", *args], capsys)
 
 
 def _two_pieces(rng, prior_on_second: bool = False) -> tuple[PoseGraph, list[int]]:

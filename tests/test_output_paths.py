@@ -15,24 +15,11 @@ import pytest
 from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
 from registration.atomic import atomic_directory, atomic_open, check_output_dir, check_output_file
 from registration.errors import OutputError
-from slam.cli import main
+from tests.cli_helpers import one_error_line as _one_error
+from tests.cli_helpers import slam as _slam
 
 pytestmark = pytest.mark.xdist_group("pipeline")
 FAST = ["--quiet", "--map", "none"]
-
-
-def _slam(args, capsys):
-    with pytest.raises(SystemExit) as ei:
-        main([str(a) for a in args])
-    cap = capsys.readouterr()
-    return ei.value.code or 0, cap.out, cap.err
-
-
-def _one_error(code, err, *names):
-    lines = err.strip().splitlines()
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), err
-    for n in names:
-        assert str(n) in lines[0], lines[0]
 
 
 def _hidden(folder: Path) -> list[str]:
