@@ -32,7 +32,10 @@ from registration.errors import GpslamError, InputFileError, MapFormatError
 
 Array = NDArray[np.float64]
 
-__all__ = ["Figure", "Report", "build_report", "write_report", "flatten_metrics", "resample_classes"]
+__all__ = ["Figure", "Report", "build_report", "write_report", "flatten_metrics", "resample_classes", "RUN_FILES"]
+
+#: The files of a ``slam run`` folder the report reads; a folder with none of them is not a run's.
+RUN_FILES = ("trajectory.tum", "odometry.tum", "graph.g2o", "map.npz", "summary.json")
 
 
 @dataclass
@@ -182,6 +185,8 @@ def build_report(
     rd = Path(result_dir)
     if not rd.is_dir():
         raise InputFileError(rd, None, "result folder does not exist")
+    if not any((rd / name).is_file() for name in RUN_FILES):
+        raise InputFileError(rd, None, f"has none of the files of a run ({', '.join(RUN_FILES)}): nothing to report")
     rep = Report()
     m = rep.metrics
     m["result_dir"] = str(rd) if result_label is None else result_label

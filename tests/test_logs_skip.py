@@ -158,6 +158,7 @@ def test_mcap_corrupt_chunk_is_skipped_through_the_index(tmp_path):
     got = list(open_log(p).frames(on_skip=log))
     assert len(log) == 1 and log.errors[0].where == f"byte offset {hit[0].chunk_start_offset}"
     assert len(got) == 400 - len(lost) and 0 < len(lost) < 20
+    assert log.scans() == (len(lost), True)  # counted from the chunk's message indexes
     np.testing.assert_array_equal(_stamps(got), _stamps(want))
 
 
@@ -178,8 +179,8 @@ def test_mcap_truncated_file_ends_with_what_was_read(tmp_path):
 
 
 def test_bag_corrupt_chunk_is_skipped(tmp_path):
-    """Flipped bytes in one bz2 chunk of a bag: stop mode raises; skip mode reports every message of that
-    chunk (the bag's own index says which) and yields all other scans."""
+    """Flipped bytes in one bz2 chunk of a bag: stop mode raises; skip mode reports the chunk once with every
+    message it held (the bag's own index says which) and yields all other scans."""
     from rosbags.rosbag1 import Reader
 
     src = tmp_path / "a.bag"
@@ -189,19 +190,22 @@ def test_bag_corrupt_chunk_is_skipped(tmp_path):
     data[mid: mid + 16] = bytes(b ^ 0x5A for b in data[mid: mid + 16])
     p = tmp_path / "c.bag"
     p.write_bytes(bytes(data))
-    with pytest.raises(LogFormatError, match="corrupt or truncated bag"):
+    with pytest.raises(LogFormatError, match="corrupt or truncated bag chunk"):
         list(open_log(p).frames())
     with Reader(src) as r:
         pos = max(c.pos for c in r.chunk_infos if c.pos <= mid)
         entries = [e for idx in r.indexes.values() for e in idx]
     lost = {e.time for e in entries if e.chunk_pos == pos}
-    # resuming after a failing message restarts at its stamp + 1 ns: messages sharing a lost stamp
-    # (an /odom beside its /scan in the next chunk) are reported too
+    # resuming after the chunk restarts past its last stamp: messages sharing a lost stamp (an /odom
+    # beside its /scan in the next chunk) are lost and reported too
     n_reported = sum(e.time in lost for e in entries)
     log = SkipLog()
     got = list(open_log(p).frames(on_skip=log))
     want = [f for f in open_log(src).frames() if stamp_to_ns(f.stamp) not in lost]
-    assert len(log) == n_reported > 0
+    chunk = [e for e in log.errors if e.where.startswith("chunk ")]  # the chunk once, with all it held
+    assert len(chunk) == 1 and chunk[0].where.endswith(f"at byte offset {pos}")
+    assert chunk[0].records == sum(e.chunk_pos == pos for e in entries)
+    assert log.records() == n_reported > 0
     assert 0 < 200 - len(got) < 200
     np.testing.assert_array_equal(_stamps(got), _stamps(want))
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
+from typing import Iterator
 
 import typer
 
@@ -61,9 +62,10 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     """Run the pipeline on *log*, write the outputs into *out*, return the summary dict.
 
     ``cfg.on_error``: ``"stop"`` ends the run at the first corrupt record (LogFormatError, nothing
-    written); ``"skip"`` leaves corrupt records out, and the summary counts them
-    (``skipped_scans``: records skipped — scans, other messages, chunks or a cut tail — and
-    ``errors``: one ``file:pos: what`` line each). With a *reference*
+    written); ``"skip"`` leaves corrupt records out, and the summary counts them: ``skipped_records``
+    (lines, messages, files; None when a cut stream lost an unknown number), ``skipped_scans`` (the
+    scans among them; ``skipped_scans_exact`` false when that is a lower bound) and ``errors`` (one
+    ``file:pos: what`` line per skip: a chunk is one). With a *reference*
     (:class:`slam.cli.run_eval.Reference`) the evaluation report is written into *out* too; its
     headline lines are returned under ``"evaluation"``. Every file, the report included, is moved
     into *out* only once all are written.
@@ -82,7 +84,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     reader = open_log(log, topic)
     skipped = SkipLog() if cfg.on_error == "skip" else None
     recorder = GroundTruthRecorder() if reference is not None and reference.gt_in_frames else None
-    frames = reader.frames(on_skip=skipped)
+    frames = _explain_no_scans(reader.frames(on_skip=skipped), log, skipped)
     if recorder is not None:
         frames = recorder.wrap(frames)
     t0 = time.perf_counter()
@@ -111,8 +113,9 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
 
             result = run_slam(frames, cfg, progress)
     wall_run = time.perf_counter() - t0
+    skipped_scans, exact = skipped.scans() if skipped is not None else (0, True)
     if skipped is not None:
-        result.skipped_scans, result.errors = len(skipped), skipped.lines()
+        result.skipped_scans, result.errors = skipped_scans, skipped.lines()
     n = len(result.stamps)
     summary = {
         "log": str(log),
@@ -125,7 +128,9 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         "stage_times_s": result.stage_times_s,
         "map_scans_fused": result.map_scans_fused,
         "on_error": cfg.on_error,
-        "skipped_scans": result.skipped_scans,
+        "skipped_records": skipped.records() if skipped is not None else 0,  # None: a cut stream, count unknown
+        "skipped_scans": skipped_scans,  # of those records, the scans (at least, unless skipped_scans_exact)
+        "skipped_scans_exact": exact,
         "errors": result.errors,
     }
     t1 = time.perf_counter()
@@ -151,6 +156,27 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     if reference is not None:
         summary["evaluation"] = evaluation
     return summary
+
+
+def _explain_no_scans(frames, log: Path, skipped) -> Iterator:  # type: ignore[no-untyped-def]
+    """*frames*, raising LogFormatError naming *log* when it yields none: every scan was skipped as corrupt
+    (then the first skip says why), or the log has none."""
+    from registration.errors import LogFormatError
+
+    n = 0
+    try:
+        for f in frames:
+            n += 1
+            yield f
+    finally:
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
+    if n == 0:
+        if skipped:
+            raise LogFormatError(log, None, f"no scan could be read: {len(skipped)} corrupt record(s) skipped, "
+                                            f"the first: {skipped.lines()[0]}")
+        raise LogFormatError(log, None, "the log yielded no scans")
 
 
 def run(
@@ -205,8 +231,11 @@ def run(
     if reference is not None:
         typer.echo(f"report: {(out / 'report.html').resolve()}")
     typer.echo(f"results: {out.resolve()}")
-    if s["skipped_scans"]:
-        typer.echo(f"warning: skipped {s['skipped_scans']} corrupt record(s) of {log}, listed under 'errors' in "
+    if s["errors"]:
+        recs = s["skipped_records"] if s["skipped_records"] is not None else "an unknown number of"
+        n = s["skipped_scans"]
+        scans = f"{'' if s['skipped_scans_exact'] else 'at least '}{n} scan{'' if n == 1 else 's'}"
+        typer.echo(f"warning: skipped {recs} corrupt record(s) ({scans}) of {log}, listed under 'errors' in "
                    f"summary.json; the first: {s['errors'][0]}", err=True)
 
 

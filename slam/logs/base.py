@@ -5,13 +5,37 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Mapping
 
 from registration.errors import LogFormatError
 from registration.frame import Frame
 
 #: Called with the error of each corrupt record a reader skipped (see :meth:`LogReader.frames`).
 SkipHandler = Callable[[LogFormatError], None]
+
+#: The key of :func:`lost` for a record of unknown kind (a garbled line: it may have been a scan).
+UNKNOWN = "?"
+
+
+def lost(error: LogFormatError, records: Mapping[str, int] | None) -> LogFormatError:
+    """Mark what skipping *error* cost: records per topic (or CARMEN tag, :data:`UNKNOWN` for a record of
+    unknown kind), or None when not known (a cut stream: whatever followed). Returns *error*."""
+    error.lost = None if records is None else dict(records)  # type: ignore[attr-defined]
+    return error
+
+
+def counting(on_skip: SkipHandler, sensor: str) -> SkipHandler:
+    """*on_skip* behind a handler that sets each error's ``records`` (how many were lost; None when not
+    known) and ``scans`` (how many of them were scans of *sensor*; None when not known) from :func:`lost`
+    (an error without it is one record of unknown kind)."""
+
+    def report(error: LogFormatError) -> None:
+        recs = getattr(error, "lost", {UNKNOWN: 1})
+        error.records = None if recs is None else sum(recs.values())  # type: ignore[attr-defined]
+        error.scans = None if recs is None or UNKNOWN in recs else recs.get(sensor, 0)  # type: ignore[attr-defined]
+        on_skip(error)
+
+    return report
 
 
 @dataclass
@@ -96,5 +120,15 @@ class SkipLog:
         return len(self.errors)
 
     def lines(self) -> list[str]:
-        """One ``file:pos: what`` line per skipped record."""
+        """One ``file:pos: what`` line per skip."""
         return [" ".join(str(e).split()) for e in self.errors]
+
+    def records(self) -> int | None:
+        """Records lost (lines, messages, files), None when a skip lost an unknown number (a cut stream)."""
+        counts = [getattr(e, "records", 1) for e in self.errors]
+        return None if any(c is None for c in counts) else sum(counts)
+
+    def scans(self) -> tuple[int, bool]:
+        """``(scans lost, exact)``: the scans known to be lost, and whether every skip said how many."""
+        counts = [getattr(e, "scans", None) for e in self.errors]
+        return sum(c for c in counts if c is not None), all(c is not None for c in counts)

@@ -56,7 +56,7 @@ from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
 from registration.numbers import c_float, c_int
 
-from .base import LogInfo, LogReader, SkipHandler, TopicInfo
+from .base import UNKNOWN, LogInfo, LogReader, SkipHandler, TopicInfo, counting, lost
 
 __all__ = ["CarmenReader", "parse_laser_line", "LASER_TAGS", "DEFAULT_FLASER_MAX_RANGE"]
 
@@ -654,6 +654,12 @@ class _BlockParser:
         return frames, error, counts
 
 
+def _line_tag(line: bytes) -> str:
+    """The message tag of a line (:data:`~slam.logs.base.UNKNOWN` for a garbled one: it may have been a scan)."""
+    tok = line.split(None, 1)
+    return tok[0].decode("ascii") if tok and _TAG_RE.match(tok[0]) else UNKNOWN
+
+
 def _tags(lines: list[bytes], want: bytes) -> Iterator[str]:
     """The message tags of good *lines*, as the parser counts them (not the sensor tag, not comments)."""
     for ln in lines:
@@ -758,6 +764,8 @@ class CarmenReader(LogReader):
         index = 0
         last = 0
         n_topic = 0
+        if on_skip is not None:
+            on_skip = counting(on_skip, topic)
         blocks = _line_blocks(self.path)
         try:
             while True:
@@ -768,7 +776,7 @@ class CarmenReader(LogReader):
                 except LogFormatError as exc:  # corrupt / truncated compressed stream: nothing after it
                     if on_skip is None:
                         raise
-                    on_skip(exc)
+                    on_skip(lost(exc, None))  # how many lines it cut off is not known
                     break
                 while lines:
                     frames, error, counts = parse(first, lines, index)
@@ -783,7 +791,7 @@ class CarmenReader(LogReader):
                         break
                     if on_skip is None:
                         raise error.error
-                    on_skip(error.error)  # resume on the line after the bad one
+                    on_skip(lost(error.error, {_line_tag(lines[error.lineno - first]): 1}))  # resume after it
                     lines = lines[error.lineno + 1 - first:]
                     first = error.lineno + 1
         finally:

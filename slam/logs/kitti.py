@@ -27,7 +27,7 @@ from registration import geometry as geo
 from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
 
-from .base import LogInfo, LogReader, SkipHandler, TopicInfo
+from .base import LogInfo, LogReader, SkipHandler, TopicInfo, counting, lost
 
 __all__ = ["KittiReader", "read_velodyne_bin", "read_calib", "read_kitti_poses", "KITTI_RATE_HZ"]
 
@@ -248,7 +248,7 @@ class KittiReader(LogReader):
             except LogFormatError as exc:
                 if on_skip is None:
                     raise
-                on_skip(exc)
+                counting(on_skip, _TOPIC)(lost(exc, {_TOPIC: 1}))  # one scan file: one scan
                 continue
             yield frame
 

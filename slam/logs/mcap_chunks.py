@@ -34,7 +34,8 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ChunkError", "SUPPORTED_COMPRESSIONS", "check_crc", "chunk_messages", "indexed_messages", "load_chunk", "read_chunk"]
+__all__ = ["ChunkError", "SUPPORTED_COMPRESSIONS", "check_crc", "chunk_messages", "indexed_messages", "load_chunk", "read_chunk",
+           "message_counts"]
 
 SUPPORTED_COMPRESSIONS = ("", "zstd", "lz4")
 
@@ -55,6 +56,25 @@ class ChunkError(Exception):
 
 
 _local = threading.local()
+_OP_MESSAGE_INDEX = 0x07
+_INDEX_HEAD = struct.Struct("<BQHI")  # opcode, length, channel_id, byte length of the (log_time, offset) pairs
+
+
+def message_counts(path: str | Path, chunk_index: Any) -> dict[int, int] | None:
+    """Messages per channel id in a chunk, from its Message Index records (16 bytes per message), which
+    follow the chunk: what a damaged chunk held. None when those records cannot be read either."""
+    out: dict[int, int] = {}
+    try:
+        with open(path, "rb") as fh:
+            for cid, offset in chunk_index.message_index_offsets.items():
+                fh.seek(offset)
+                op, _, rec_cid, nbytes = _INDEX_HEAD.unpack(fh.read(_INDEX_HEAD.size))
+                if op != _OP_MESSAGE_INDEX or rec_cid != cid or nbytes % 16:
+                    return None
+                out[cid] = nbytes // 16
+    except (OSError, struct.error):
+        return None
+    return out
 
 
 def _zstd_decompress(data: memoryview, size: int) -> bytes:

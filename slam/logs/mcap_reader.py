@@ -27,8 +27,8 @@ from typing import Any, Callable, Iterator
 
 from registration.errors import LogFormatError
 
-from .base import SkipHandler, TopicInfo
-from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages
+from .base import SkipHandler, TopicInfo, lost
+from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages, message_counts
 from .ros_msgs import RawMessage, RosLogReader, cached_typestore, normalize_msgtype
 
 __all__ = ["McapReader"]
@@ -224,7 +224,7 @@ class McapReader(RosLogReader):
                 error = LogFormatError(self.path, f"byte offset {pos} ({last})", f"corrupt or truncated MCAP: {why}")
                 if on_skip is None:
                     raise error from None
-                on_skip(error)
+                on_skip(lost(error, None))  # the stream cannot resume: what followed is not known
                 return
             if counts is not None:
                 topic = item[1].topic if topic_of is None else topic_of(item)
@@ -267,7 +267,12 @@ class McapReader(RosLogReader):
             assert on_skip is not None
             span = f"log time {index.message_start_time / 1e9:.9f}–{index.message_end_time / 1e9:.9f} s"
             what = f"corrupt MCAP chunk ({span}) skipped: {exc}"
-            on_skip(LogFormatError(self.path, f"byte offset {exc.offset}", what))
+            held = message_counts(self.path, index)
+            per_topic = None if held is None else {}
+            for cid, n in (held or {}).items():
+                if ids is None or cid in ids:
+                    per_topic[meta[cid][0]] = per_topic.get(meta[cid][0], 0) + n  # type: ignore[index]
+            on_skip(lost(LogFormatError(self.path, f"byte offset {exc.offset}", what), per_topic))
 
         it = indexed_messages(
             self.path,

@@ -36,7 +36,7 @@ from registration import geometry as geo
 from registration.errors import LogFormatError, TopicNotFoundError
 from registration.frame import Frame
 
-from .base import LogInfo, LogReader, SkipHandler, TopicInfo
+from .base import LogInfo, LogReader, SkipHandler, TopicInfo, counting, lost
 
 Array = NDArray[np.float64]
 
@@ -800,19 +800,22 @@ class RosLogReader(LogReader):
         """
         quiet: SkipHandler | None = None if on_skip is None else (lambda exc: None)
 
-        def guarded(fn: Any, *args: Any, **kwargs: Any) -> Any:
-            """``fn(*args, **kwargs)``; with *on_skip*, a LogFormatError is reported and None returned."""
+        def guarded(fn: Any, raw: RawMessage, *args: Any, **kwargs: Any) -> Any:
+            """``fn(raw, *args, **kwargs)``; with *on_skip*, a LogFormatError is reported (costing that one
+            message) and None returned."""
             try:
-                return fn(*args, **kwargs)
+                return fn(raw, *args, **kwargs)
             except LogFormatError as exc:
                 if on_skip is None:
                     raise
-                on_skip(exc)
+                on_skip(lost(exc, {raw.topic: 1}))
                 return None
 
         with self._session():
             self._load_meta(tolerant=on_skip is not None)
             choice = self.choose_topics()
+            if on_skip is not None:
+                on_skip = counting(on_skip, choice.sensor.name)
             laser = choice.sensor.msgtype == LASER_SCAN
             batch_size = 64 if laser else 1
             max_pending = self.max_pending if laser else 16
@@ -922,13 +925,23 @@ class RosLogReader(LogReader):
     # -- info -------------------------------------------------------------------------------
 
     def info(self) -> LogInfo:
-        """Summary of the log: topic counts from the index (summary / connections), and scans,
-        beams, start/end from decoding and checking every message of the sensor topic."""
+        """Summary of the log, read whole: topic counts from the index (summary / connections); every
+        message read from the container, and those of the topics a run uses (sensor, odometry, ground
+        truth, TF) decoded and checked as a run checks them, so a log it summarises without an error is
+        one a run reads; scans, beams and start/end from the sensor topic."""
         choice = self.choose_topics()
+        poses = {c.name for c in (choice.odom, choice.ground_truth) if c is not None}
+        scratch = TfBuffer()
         scans = 0
         beams: list[int] = []
         start = end = None
-        for raw in self._raw_messages({choice.sensor.name}):
+        for raw in self._raw_messages(None):
+            if raw.topic != choice.sensor.name:
+                if raw.topic in poses:
+                    self._pose_sample(raw, self._decode(raw))
+                elif raw.topic in choice.tf or raw.topic in choice.tf_static:
+                    self._add_tf(scratch, raw, static=raw.topic in choice.tf_static)
+                continue
             msg = self._decode(raw)
             if raw.msgtype == LASER_SCAN:
                 check_scan(msg, self.path, raw.where)
