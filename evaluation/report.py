@@ -3,7 +3,7 @@
 Reads whatever of the pipeline outputs exist in the folder (DESIGN.md "Outputs of slam run"):
 ``trajectory.tum`` (optimised pose of every scan), ``odometry.tum``, ``graph.g2o`` (loop edges
 marked), ``map.npz`` (``mean``, ``variance``, ``probability``, ``resolution``, ``origin``) and
-``summary.json`` (stage timings under ``timings`` / ``stage_timings`` / ``timings_s``, seconds).
+``summary.json`` (stage timings under ``stage_times_s``, seconds, as ``slam run`` writes them).
 Optional inputs: a ground-truth trajectory (APE after SE(2)/SE(3) Umeyama alignment, RPE over one
 frame, loop precision/recall), Kümmerle relations (with the published numbers) and a ground-truth
 map (map ROC/AUC, after moving the map into the ground-truth frame with the trajectory alignment).
@@ -82,24 +82,13 @@ def _clean(obj: Any) -> Any:
 
 
 def _timings(summary: dict[str, Any]) -> dict[str, float]:
-    """Stage → seconds from ``summary.json``: the first of the usual keys that maps names to numbers, else
-    the top-level ``<stage>_time_s`` entries."""
-    for key in ("timings", "stage_timings", "timings_s", "stage_times", "timing"):
-        val = summary.get(key)
-        if isinstance(val, dict):
-            out = {}
-            for k, v in val.items():
-                if isinstance(v, (int, float)) and not isinstance(v, bool):
-                    out[str(k)] = float(v)
-                elif isinstance(v, dict):
-                    for sub in ("seconds", "time_s", "total_s", "total"):
-                        if isinstance(v.get(sub), (int, float)):
-                            out[str(k)] = float(v[sub])
-                            break
-            if out:
-                return out
-    return {k[: -len("_time_s")]: float(v) for k, v in summary.items()
-            if k.endswith("_time_s") and isinstance(v, (int, float)) and not isinstance(v, bool)}
+    """Stage → seconds from ``summary.json``: its ``stage_times_s`` (``{"odometry_s": …}``, what ``slam run``
+    writes), under the stage names (``odometry``)."""
+    val = summary.get("stage_times_s")
+    if not isinstance(val, dict):
+        return {}
+    return {str(k).removesuffix("_s"): float(v) for k, v in val.items()
+            if isinstance(v, (int, float)) and not isinstance(v, bool)}
 
 
 def resample_classes(gt_classes: NDArray[np.int8], gt_resolution: float, gt_origin: Array, shape: tuple[int, int],
