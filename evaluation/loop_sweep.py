@@ -73,7 +73,7 @@ class SweepResult:
 
 def numeric_fields(model: type[BaseModel], prefix: str = "") -> dict[str, type]:
     """Fields of *model* a sweep may vary, by (dotted) name: the int and float ones, optional (None = off)
-    or not, also inside nested models (``numeric_fields(SlamConfig)`` has ``"loops.min_fitness"``)."""
+    or not, also inside nested models (``numeric_fields(SlamConfig)`` has ``"loops.icp_tolerance"``)."""
     out: dict[str, type] = {}
     for name, f in model.model_fields.items():
         ann = f.annotation
@@ -104,7 +104,7 @@ def parse_sweep(text: str, fields: dict[str, type] | None = None) -> Sweep:
             known = ", ".join(sorted(fields))
         else:
             kind = "is not a numeric setting"
-            known = "dotted config names, e.g. loops.min_fitness, odometry.icp_tolerance, max_scans"
+            known = "dotted config names, e.g. loops.icp_tolerance, odometry.icp_tolerance, max_scans"
         raise ConfigError(f"--sweep {text!r}: {name!r} {kind}; sweepable: {known}")
     parts = spec.split(":")
     if len(parts) != 3:

@@ -31,8 +31,8 @@ from tests.test_logs_skip import rewrite_mcap
 
 pytestmark = pytest.mark.xdist_group("batch")
 
-SWEEP = "max_rotation_sigma_deg=0.12:0.36:2"  # on these logs the wider gate accepts closures the default refuses
-SETTINGS = ("loops.max_rotation_sigma_deg=0.12", "loops.max_rotation_sigma_deg=0.36")
+SWEEP = "odometry.icp_tolerance=0.0005:0.001:2"  # a dotted name: any numeric config value
+SETTINGS = ("odometry.icp_tolerance=0.0005", "odometry.icp_tolerance=0.001")
 
 
 def _slam(args, capsys):
@@ -93,7 +93,7 @@ def logs(tmp_path_factory):
     first) and a copy of the second whose /scan message 40 cannot be decoded."""
     d = tmp_path_factory.mktemp("logs")
     good = []
-    for k, seed in enumerate((1, 3, 6)):  # closures: 0 / 5, 2 / 2, 0 / 4 under the two settings
+    for k, seed in enumerate((1, 3, 6)):
         sim = simulate(load_world("corridor"), n_scans=110, spec=LASER_PRESETS["sick_lms"], seed=seed)
         path = d / f"tour{k}.mcap"
         write_simulated_log(sim, path)
@@ -128,15 +128,15 @@ def sequential(logs, tmp_path_factory):
     good, _ = logs
     d = tmp_path_factory.mktemp("sequential")
     out = {}
-    for value in (0.12, 0.36):
+    for value in (0.0005, 0.001):
         cfg = d / f"cfg{value}.yaml"
-        cfg.write_text(f"mapping:\n  enabled: false\nloops:\n  max_rotation_sigma_deg: {value}\n")
+        cfg.write_text(f"mapping:\n  enabled: false\nodometry:\n  icp_tolerance: {value}\n")
         for log in good:
             run = d / f"{log.stem}_{value}"
             with pytest.raises(SystemExit) as ei:
                 main(["run", str(log), "--config", str(cfg), "--out", str(run), "--eval", "--quiet"])
             assert ei.value.code in (0, None)
-            out[(log.stem, f"loops.max_rotation_sigma_deg={value}")] = run
+            out[(log.stem, f"odometry.icp_tolerance={value}")] = run
     return out
 
 
@@ -161,9 +161,9 @@ def test_batch_runs_equal_sequential_slam_runs(batch, sequential):
             assert r["relations_used"] == m["relations"]["estimate"]["n_used"] > 0
         else:
             assert r["relation_trans_mean_m"] is None
-    # The setting changes something: the wider heading gate accepts more closures on some log.
-    acc = {(r["log"], r["setting"]): r["loops_accepted"] for r in ok}
-    assert any(acc[(g, SETTINGS[1])] > acc[(g, SETTINGS[0])] for g in ("tour0", "tour1", "tour2"))
+    # The setting reaches the run: the two ICP tolerances give different trajectories.
+    traj = {(r["log"], r["setting"]): (out / "runs" / r["log"] / r["setting"] / "trajectory.tum").read_bytes() for r in ok}
+    assert all(traj[(g, SETTINGS[0])] != traj[(g, SETTINGS[1])] for g in ("tour0", "tour1", "tour2"))
 
 
 def test_loop_precision_is_the_reports(batch):
@@ -203,7 +203,7 @@ def test_results_csv_json_md_and_report_agree(batch):
     with open(out / "results.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == doc["columns"] and len(rows) == len(doc["rows"]) == 8
-    assert doc["columns"][:3] == ["log", "setting", "loops.max_rotation_sigma_deg"]
+    assert doc["columns"][:3] == ["log", "setting", "odometry.icp_tolerance"]
     for c_row, j_row in zip(rows, doc["rows"]):
         for k in doc["columns"]:
             v = j_row[k]
@@ -218,7 +218,7 @@ def test_results_csv_json_md_and_report_agree(batch):
     html = (out / "report.html").read_text()
     # relation bars, precision bars, and relation error + precision against the swept value
     assert html.count("data:image/png;base64,") == 4
-    assert "Relation error per log" in html and "against loops.max_rotation_sigma_deg" in html
+    assert "Relation error per log" in html and "against odometry.icp_tolerance" in html
 
 
 def test_resume_reruns_nothing_and_a_changed_config_reruns_its_runs(batch, logs, tmp_path, capsys):
@@ -252,7 +252,7 @@ def test_two_cpus_per_run_keep_the_stage_processes(ray_cluster, logs, batch, tmp
     out1, _, _ = batch
     good, _ = logs
     out = tmp_path / "two"
-    code, _, err = _slam(["batch", good[0], "--sweep", "max_rotation_sigma_deg=0.12:0.12:1", "--config",
+    code, _, err = _slam(["batch", good[0], "--sweep", "odometry.icp_tolerance=0.0005:0.0005:1", "--config",
                           _mapping_off(tmp_path), "--out", out, "--cpus-per-run", "2", "--quiet"], capsys)
     assert code == 0, err
     run = out / "runs" / "tour0" / SETTINGS[0]
@@ -294,21 +294,21 @@ def test_settings_are_explicit_ones_times_the_sweep_and_log_values_come_last(log
   - log: {good[0]}
     config: {{odometry: {{use_wheel_odometry: false}}}}
   - {good[1]}
-sweep: [min_fitness=0.5:0.7:2]
+sweep: [exclude_recent_keyframes=10:20:2]
 settings:
   - {{id: base}}
   - {{odometry.use_wheel_odometry: true, backend: {{kind: chordal}}}}
 """)
     b = load_spec(spec, log_stem)
     ids = [s.id for s in b.settings]
-    assert ids == ["base,loops.min_fitness=0.5", "base,loops.min_fitness=0.7",
-                   "odometry.use_wheel_odometry=true,backend.kind=chordal,loops.min_fitness=0.5",
-                   "odometry.use_wheel_odometry=true,backend.kind=chordal,loops.min_fitness=0.7"]
-    assert b.value_names == ["loops.min_fitness", "odometry.use_wheel_odometry", "backend.kind"]
+    assert ids == ["base,loops.exclude_recent_keyframes=10", "base,loops.exclude_recent_keyframes=20",
+                   "odometry.use_wheel_odometry=true,backend.kind=chordal,loops.exclude_recent_keyframes=10",
+                   "odometry.use_wheel_odometry=true,backend.kind=chordal,loops.exclude_recent_keyframes=20"]
+    assert b.value_names == ["loops.exclude_recent_keyframes", "odometry.use_wheel_odometry", "backend.kind"]
     jobs = b.jobs(tmp_path / "o")
     assert len(jobs) == 8
     for j in jobs:
-        assert j.config["loops"]["min_fitness"] == j.values["loops.min_fitness"]
+        assert j.config["loops"]["exclude_recent_keyframes"] == j.values["loops.exclude_recent_keyframes"]
         assert j.config["backend"]["kind"] == j.values.get("backend.kind", "gtsam")
         assert j.config["odometry"]["use_wheel_odometry"] is (j.log_name != "tour0")
 
@@ -335,7 +335,7 @@ def test_hashes_follow_content_not_names(tmp_path):
 @pytest.mark.parametrize("body, where, what", [
     ("logs: [missing.clf]\n", "logs[0]", "no such log"),
     ("logs: ['nothing*.clf']\n", "logs[0]", "no log matches"),
-    ("logs: [{LOG}]\nsweep: [min_fitness=0.5:1.5:3]\n", "sweep", "min_fitness"),
+    ("logs: [{LOG}]\nsweep: [exclude_recent_keyframes=0:5:2]\n", "sweep", "exclude_recent_keyframes"),
     ("logs: [{LOG}]\nsweep: [nope=1:2:3]\n", "sweep[0]", "not a numeric setting"),
     ("logs: [{LOG}]\nsettings: [{{odometry.nope: 1}}]\n", "settings[0]", "'odometry.nope' is not a configuration setting"),
     ("logs: [{LOG}]\nsettings: [{{max_scans: 0}}]\n", "settings[0]", "max_scans"),
@@ -373,7 +373,7 @@ def test_loops_parallel_gives_the_rows_of_loops(ray_cluster, logs, tmp_path, cap
     rows = {}
     for mode in ([], ["--parallel"]):
         out = tmp_path / ("par" if mode else "seq")
-        code, _, err = _slam(["loops", good[0], "--sweep", "max_rotation_sigma_deg=0.12:0.36:3", "--out", out, "--quiet",
+        code, _, err = _slam(["loops", good[0], "--sweep", "exclude_recent_keyframes=5:15:3", "--out", out, "--quiet",
                               *mode], capsys)
         assert code == 0, err
         rows[bool(mode)] = [{k: v for k, v in r.items() if k != "time_s"}

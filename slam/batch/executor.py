@@ -53,6 +53,7 @@ class RayExecutor:
         self.cancel_grace_s = cancel_grace_s
         self.submitted = 0  # tasks submitted through this executor
         self.start_s = 0.0  # seconds spent connecting (starting a local instance included)
+        self.stop_s = 0.0  # seconds spent disconnecting (stopping a local instance included)
         self._owned = False
         self._ray: Any = None
 
@@ -74,9 +75,11 @@ class RayExecutor:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        t0 = time.perf_counter()
         if self._owned and self._ray is not None:
             self._ray.shutdown()
         self._ray = None
+        self.stop_s = time.perf_counter() - t0
 
     @property
     def cluster_cpus(self) -> float:

@@ -14,10 +14,11 @@ A spec is YAML. Relative paths are relative to the spec's folder; log paths may 
         config:                  # values for this log alone, applied after the setting's
           odometry.use_wheel_odometry: false
     sweep:                       # NAME=start:stop:count, the grammar of `slam loops` (evaluation.loop_sweep):
-      - min_fitness=0.5:0.8:4    # a bare name is a loops setting, a dotted one any numeric config value
+      - exclude_recent_keyframes=10:20:3   # a bare name is a loops setting,
+      - odometry.icp_tolerance=4e-4:6e-4:3 # a dotted one any numeric config value
     settings:                    # explicit settings, each some config values and an optional id
       - {id: default}
-      - {id: no-descriptor, loops.use_descriptor: false}
+      - {id: chordal, backend.kind: chordal}
 
 The settings are the explicit ones (default: one that changes nothing) × the sweep grid; the batch is
 every log × every setting, each run evaluated when it has a reference. Config values may be nested
@@ -137,7 +138,7 @@ def _sha_or_none(p: Path | None) -> str | None:
 
 
 def _flatten(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"odometry": {"max_range": 20}, "loops.min_fitness": 0.7}`` → ``{"odometry.max_range": 20, "loops.min_fitness": 0.7}``."""
+    """``{"odometry": {"max_range": 20}, "loops.icp_tolerance": 2e-4}`` → ``{"odometry.max_range": 20, "loops.icp_tolerance": 2e-4}``."""
     out: dict[str, Any] = {}
     for k, v in values.items():
         key = f"{prefix}{k}"
@@ -182,7 +183,7 @@ def _value_text(v: Any) -> str:
 
 
 def _setting_id(values: dict[str, Any]) -> str:
-    """``loops.min_fitness=0.6,max_scans=300``; ``default`` for no change; long ones by hash."""
+    """``loops.exclude_recent_keyframes=10,max_scans=300``; ``default`` for no change; long ones by hash."""
     if not values:
         return "default"
     text = ",".join(f"{k}={_value_text(v)}" for k, v in values.items())

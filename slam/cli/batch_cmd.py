@@ -101,7 +101,7 @@ def batch(
     echo = (lambda msg: None) if quiet else (lambda msg: typer.echo(msg, err=True))  # noqa: E731
     echo(f"batch: {len(spec.logs)} log(s) × {len(spec.settings)} setting(s) = {len(jobs)} runs; "
          f"{len(jobs) - len(todo)} already done (same log and config hash), {len(todo)} to run")
-    tasks_run, ray_start_s, cluster_cpus = 0, 0.0, None
+    tasks_run, ray_start_s, ray_stop_s, cluster_cpus = 0, 0.0, 0.0, None
     if todo:
         from slam.batch.executor import RayExecutor, TaskFailure
 
@@ -147,6 +147,7 @@ def batch(
                     if bar is not None:
                         bar.stop()
                 tasks_run = ex.submitted
+            ray_stop_s = ex.stop_s
         except KeyboardInterrupt:
             typer.echo(f"interrupted: {finished} of {len(todo)} runs finished and kept under {out / 'runs'}; the same "
                        "command resumes the rest", err=True)
@@ -160,7 +161,7 @@ def batch(
         "value_names": spec.value_names, "sweeps": spec.sweeps, "runs": len(final_rows),
         "ok": len(final_rows) - n_failed, "failed": n_failed, "resumed": len(jobs) - len(todo), "tasks_run": tasks_run,
         "address": address or "local", "cpus_per_run": cpus_per_run, "cluster_cpus": cluster_cpus,
-        "ray_start_s": ray_start_s, "wall_time_s": time.perf_counter() - t0,
+        "ray_start_s": ray_start_s, "ray_stop_s": ray_stop_s, "wall_time_s": time.perf_counter() - t0,
     }
     write_results(out, final_rows, spec.value_names, meta)
     typer.echo(markdown_table(flat_rows(final_rows, spec.value_names), spec.value_names), nl=False)
