@@ -112,6 +112,9 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
                                lc=p.loop_closures)
 
             result = run_slam(frames, cfg, progress)
+            # the final keyframes come when the front end is flushed, after the last update above
+            bar.update(task, completed=len(result.stamps), rate=len(result.stamps) / max(time.perf_counter() - t0, 1e-9),
+                       kf=len(result.keyframes), lc=_loop_closures(result))
     wall_run = time.perf_counter() - t0
     skipped_scans, exact = skipped.scans() if skipped is not None else (0, True)
     if skipped is not None:
@@ -121,7 +124,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         "log": str(log),
         "scans": n,
         "keyframes": len(result.keyframes),
-        "loop_closures": len(result.loops) - result.loop_stats.get("pruned", 0),
+        "loop_closures": _loop_closures(result),
         "loop_stats": result.loop_stats,
         "odometry_stats": result.odometry_stats,
         "dimension": 2 if result.planar else 3,
@@ -156,6 +159,11 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     if reference is not None:
         summary["evaluation"] = evaluation
     return summary
+
+
+def _loop_closures(result) -> int:  # type: ignore[no-untyped-def]
+    """Loop closures the run kept: accepted minus those the back end pruned."""
+    return len(result.loops) - result.loop_stats.get("pruned", 0)
 
 
 def _explain_no_scans(frames, log: Path, skipped) -> Iterator:  # type: ignore[no-untyped-def]

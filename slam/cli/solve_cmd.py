@@ -39,7 +39,13 @@ def solve(
                                             "edge joins, holding each part at its first node (their relative "
                                             "placement is then arbitrary); refused by default."),
 ) -> None:
-    """Print ``{"sesync_objective", "gtsam_error", "iterations", "time_s", ...}`` on one line."""
+    """Optimise a pose graph (g2o or TORO) with GTSAM's Levenberg-Marquardt or our chordal Gauss-Newton, from an
+    odometry, chordal or the file's own initial guess, and print one JSON line: the graph's size, the SE-Sync
+    objective and GTSAM's χ² of the solution (null when an edge's information is not positive definite),
+    the iterations and the solver time. --out writes the optimised graph as g2o.
+
+    A graph whose parts no edge joins is refused (--allow-disconnected holds each part at its first node).
+    """
     import json
 
     from registration.atomic import check_output_file
