@@ -152,7 +152,11 @@ def strip_frame(frame_id: str) -> str:
 
 
 def _check_vec(v: Array) -> Array:
-    if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-12:
+    """*v* if its numbers are finite and its quaternion has a finite, non-zero norm (one of garbage size
+    overflows: refused here rather than warned about by numpy)."""
+    with np.errstate(over="ignore"):
+        qn = float(np.linalg.norm(v[3:]))
+    if not np.all(np.isfinite(v)) or not (1e-12 <= qn < np.inf):
         raise ValueError(f"invalid pose (translation, quaternion) {v.tolist()}")
     return v
 
