@@ -99,10 +99,10 @@ class _OdometryTap:
 def run_ours(log: Path, relations, max_scans: int | None) -> dict:  # type: ignore[no-untyped-def]
     """``slam run`` (default config, mapping on) into a temporary folder; relation error and wall time."""
     from evaluation.peers import stdout_to_stderr
-    from slam.cli.run_cmd import _config, run_log
+    from slam.cli.run_cmd import load_config, run_log
     from slam.trajectory_io import read_tum
 
-    cfg = _config(None, {"max_scans": max_scans})
+    cfg = load_config(None, {"max_scans": max_scans})
     with tempfile.TemporaryDirectory(prefix="peers-ours-") as tmp:
         out = Path(tmp) / "run"
         with stdout_to_stderr():

@@ -40,7 +40,7 @@ M = TypeVar("M", bound=BaseModel)
 #: ``on_done(index, result)`` as each finishes; a parallel executor may run the calls anywhere.
 MapFn = Callable[[Callable[..., Any], tuple, Sequence[tuple], Callable[[int, Any], None] | None], list]
 
-__all__ = ["Sweep", "SweepResult", "parse_sweep", "numeric_fields", "sweep_grid", "run_loop_sweep", "sweep_recorded",
+__all__ = ["Sweep", "SWEEP_MARKER", "SweepResult", "parse_sweep", "numeric_fields", "sweep_grid", "run_loop_sweep", "sweep_recorded",
            "score_setting", "write_sweep", "COLUMNS_TRUTH", "COLUMNS_SELF", "COLUMNS_RELATIONS"]
 
 # Columns after the swept values, by kind of log.
@@ -326,6 +326,10 @@ def _fmt(v: object) -> str:
     return str(v)
 
 
+#: Files every sweep folder holds: an existing folder with them is an earlier sweep, which a new one replaces.
+SWEEP_MARKER = ("loops.csv", "loops.json")
+
+
 def write_sweep(out_dir, result: SweepResult, extra_meta: dict | None = None) -> None:  # out_dir: str | Path
     """Write ``loops.csv``, ``loops.json`` and ``pr.png`` into *out_dir*, atomically (all or nothing).
 
@@ -341,7 +345,7 @@ def write_sweep(out_dir, result: SweepResult, extra_meta: dict | None = None) ->
     from .plots import sweep_png
 
     meta = result.meta | (extra_meta or {})
-    with atomic_directory(out_dir) as tmp:
+    with atomic_directory(out_dir, SWEEP_MARKER) as tmp:
         with open(tmp / "loops.csv", "w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
             w.writerow(result.columns)

@@ -25,11 +25,11 @@ def demo(
     from evaluation.relations import evaluate_relations, read_relations
     from registration.atomic import check_output_dir
     from slam.cli.eval_cmd import relations_table
-    from slam.cli.run_cmd import _config, run_log
+    from slam.cli.run_cmd import load_config, run_log
     from slam.pipeline.outputs import RUN_MARKER
     from slam.trajectory_io import read_tum
 
-    cfg = _config(None, {"max_scans": max_scans})
+    cfg = load_config(None, {"max_scans": max_scans})
     check_output_dir(out, RUN_MARKER)
     typer.echo(f"slam run {log} → {out} (this takes a few minutes on 2 cores for the whole Intel log)")
     s = run_log(log, out, cfg, None, quiet)

@@ -36,12 +36,13 @@ def loops(
     log: Path = typer.Argument(..., help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence."),
     sweep: list[str] = typer.Option([], "--sweep", help="NAME=start:stop:count over a numeric loops setting (e.g. "
                                     "min_fitness=0.5:0.8:4); repeat for a grid. Default: the configured setting only."),
-    out: Path = typer.Option(Path("out/loops"), "--out", help="Output folder: loops.csv, loops.json, pr.png (atomic)."),
+    out: Path = typer.Option(Path("out/loops"), "--out", help="Output folder: loops.csv, loops.json, pr.png (atomic; "
+                             "an earlier sweep's folder there is replaced whole)."),
     config: Path | None = typer.Option(None, "--config",
                                        help="YAML configuration (its loops section is the grid's base)."),
     relations: Path | None = typer.Option(None, "--relations", help="Kümmerle relations for the relation error "
                                           "(default: <stem>.relations beside the log, if present)."),
-    max_scans: int | None = typer.Option(None, "--max-scans", help="Stop after this many scans."),
+    max_scans: int | None = typer.Option(None, "--max-scans", min=1, help="Stop after this many scans."),
     topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),
     quiet: bool = typer.Option(False, "--quiet", help="Only the final table."),
     parallel: bool = typer.Option(False, "--parallel", help="Replay the settings as Ray tasks, one CPU each (the "
@@ -51,13 +52,15 @@ def loops(
 ) -> None:
     """Loop closure on LOG under each setting of a grid: precision/recall against ground truth (simulated
     logs) or Cartographer's 20 cm / 1° consistency after optimisation (real logs)."""
-    from evaluation.loop_sweep import parse_sweep, run_loop_sweep, sweep_grid, write_sweep
-    from slam.cli.run_cmd import _config
+    from evaluation.loop_sweep import SWEEP_MARKER, parse_sweep, run_loop_sweep, sweep_grid, write_sweep
+    from registration.atomic import check_output_dir
+    from slam.cli.run_cmd import load_config
     from slam.logs import open_log
 
     # Everything the user typed is checked before any work (and before --out exists).
     sweeps = [parse_sweep(s) for s in sweep]
-    cfg = _config(config, {"max_scans": max_scans, "mapping.enabled": False})
+    cfg = load_config(config, {"max_scans": max_scans, "mapping.enabled": False})
+    check_output_dir(out, SWEEP_MARKER)
     sweep_grid(cfg.loops, sweeps)
     rel_path = relations if relations is not None else relations_beside(log)
     rel = None

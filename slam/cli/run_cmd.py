@@ -9,7 +9,7 @@ from typing import Iterator
 import typer
 
 
-def _config(config: Path | None, overrides: dict):  # type: ignore[no-untyped-def]
+def load_config(config: Path | None, overrides: dict):  # type: ignore[no-untyped-def]
     """The configuration of a run: *config* (YAML) or the defaults, with the non-None *overrides*
     (``"section.key": value``) applied. Raises ConfigError naming the setting a value does not fit."""
     from pydantic import ValidationError
@@ -217,7 +217,7 @@ def run(
         overrides["mapping.enabled"] = map_method is not MapMethod.none
         if map_method is not MapMethod.none:
             overrides["mapping.params.method"] = map_method.value
-    cfg = _config(config, overrides)
+    cfg = load_config(config, overrides)
     check_output_dir(out, RUN_MARKER)
     reference = None
     if evaluate or relations is not None or gt is not None:

@@ -28,8 +28,11 @@ def detect_format(path: str | Path) -> str:
     for comp in (".bz2", ".gz"):
         if name.endswith(comp):
             name = name[: -len(comp)]
-    with open(p, "rb") as fh:
-        head = fh.read(16)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(16)
+    except OSError as exc:
+        raise LogFormatError(p, None, f"cannot read: {exc.strerror or exc}") from None
     if head.startswith(b"\x89MCAP") or name.endswith(".mcap"):
         return "mcap"
     if head.startswith(b"#ROSBAG V2.0") or name.endswith(".bag"):
