@@ -451,3 +451,56 @@ def test_example_specs_name_every_log_and_its_reference():
         scan_only = e.path.parent.name == "gmapping-corrected"
         assert e.values == ({"odometry.use_wheel_odometry": False, "odometry.wheel_edges": False} if scan_only else {})
     assert {e.name: e.relations for e in d.logs}["killian"].name == "mit-killian.relations"
+
+
+def _die_on(i: int, bad: int) -> int:
+    """A task body: returns *i*, except that for *bad* its worker process dies (as under the OOM killer)."""
+    if i == bad:
+        os._exit(3)
+    return i
+
+
+def _raise_on(i: int, bad: int) -> int:
+    from registration.errors import ConfigError
+
+    if i == bad:
+        raise ConfigError(f"item {i} is bad")
+    return i
+
+
+def test_executor_reports_a_dead_worker_and_reraises_a_task_error(ray_cluster):
+    """A task whose worker dies is a TaskFailure in its place and the others' results stand (in order); with
+    failures="raise" the task's own exception comes back here, as the sequential call would raise it."""
+    import cloudpickle
+
+    from registration.errors import ConfigError
+    from slam.batch.executor import RayExecutor, TaskFailure
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import tests/
+    try:
+        with RayExecutor() as ex:
+            done = []
+            res = ex.map(_die_on, (), [(i, 2) for i in range(4)], lambda i, r: done.append(i))
+            assert res[:2] == [0, 1] and res[3] == 3 and isinstance(res[2], TaskFailure)
+            assert "\n" not in res[2].message and res[2].message and sorted(done) == [0, 1, 2, 3]
+            assert ex.map(_raise_on, (), [(0, 9), (1, 9)], failures="raise") == [0, 1]
+            with pytest.raises(ConfigError, match="item 1 is bad"):
+                ex.map(_raise_on, (), [(0, 1), (1, 1)], failures="raise")
+            assert ex.submitted == 8
+        assert ray_cluster.is_initialized()  # the executor leaves a Ray it did not start running
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.mark.parametrize("address, what", [("127.0.0.1:1", "no Ray cluster answers there"),
+                                           ("nonsense", "expected auto, HOST:PORT")])
+def test_unreachable_address_is_one_line_exit_2(address, what, logs, tmp_path, capsys):
+    """--address where no cluster listens: one error line within seconds (Ray would retry for minutes and then
+    exit), exit 2, nothing written."""
+    good, _ = logs
+    out = tmp_path / "never"
+    code, _, err = _slam(["batch", good[0], "--out", out, "--address", address, "--quiet"], capsys)
+    assert code == 2
+    err = err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: --address {address}: ") and what in err[0]
+    assert not out.exists()

@@ -21,11 +21,16 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
+from registration.errors import ConfigError
+
 __all__ = ["TaskFailure", "RayExecutor"]
+
+_CONNECT_TIMEOUT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -37,6 +42,21 @@ class TaskFailure:
 
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
+
+
+def _check_reachable(address: str) -> None:
+    """ConfigError unless something listens at ``HOST:PORT`` (or ``ray://HOST:PORT``) within a few seconds:
+    Ray itself retries an unreachable address for minutes and then exits the process."""
+    if address == "auto":
+        return
+    hostport = address.removeprefix("ray://")
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ConfigError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host, int(port)), timeout=_CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise ConfigError(f"--address {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
 
 
 class RayExecutor:
@@ -69,7 +89,13 @@ class RayExecutor:
             kwargs: dict[str, Any] = {"log_to_driver": False, "logging_level": logging.ERROR}
             if self.address is None:
                 kwargs["include_dashboard"] = False
-            ray.init(address=self.address, **kwargs)
+            else:
+                _check_reachable(self.address)
+            try:
+                ray.init(address=self.address, **kwargs)
+            except (Exception, SystemExit) as exc:  # Ray exits the process when it cannot reach its cluster
+                where = "a local Ray" if self.address is None else f"--address {self.address}"
+                raise ConfigError(f"{where}: Ray did not start: {_one_line(f'{type(exc).__name__}: {exc}')}") from None
             self._owned = True
         self.start_s = time.perf_counter() - t0
         return self

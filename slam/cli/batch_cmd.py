@@ -82,6 +82,8 @@ def batch(
     # Everything the user gave is checked before any work (and before --out exists).
     if not cpus_per_run > 0:
         raise ConfigError(f"--cpus-per-run {cpus_per_run}: must be > 0")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: exists and is not a folder")
     if len(inputs) == 1 and inputs[0].lower().endswith(_SPEC_SUFFIXES):
         if sweep or config is not None:
             raise ConfigError(f"--sweep and --config belong in the spec ({inputs[0]}: sweep:, config:)")
@@ -129,7 +131,8 @@ def batch(
                 def done(k: int, result) -> None:  # type: ignore[no-untyped-def]
                     nonlocal finished, failed
                     i = todo[k]
-                    rows[i] = failed_row(jobs[i], result.message) if isinstance(result, TaskFailure) else result
+                    rows[i] = (failed_row(jobs[i], f"{jobs[i].log}: {result.message}") if isinstance(result, TaskFailure)
+                               else result)
                     finished += 1
                     failed += rows[i]["status"] != "ok"
                     if bar is not None:
