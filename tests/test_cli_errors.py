@@ -36,7 +36,9 @@ def files(tmp_path_factory):
     rel.write_text("".join(f"{sim.stamps[k]!r} {sim.stamps[k + 5]!r} 0.1 0 0 0 0 0\n" for k in range(0, 50, 5)))
     cfg = d / "config.yaml"
     cfg.write_text("max_scans: 20\n")
-    return {"log": log, "gt_map": map_paths(log)[0], "run": run, "tum": run / "trajectory.tum",
+    spec = d / "batch.yaml"
+    spec.write_text(f"logs: [{log}]\n")
+    return {"spec": spec, "log": log, "gt_map": map_paths(log)[0], "run": run, "tum": run / "trajectory.tum",
             "g2o": run / "graph.g2o", "npz": run / "map.npz", "stamps": run / "node_stamps.txt", "rel": rel,
             "cfg": cfg}
 
@@ -87,8 +89,10 @@ COMMANDS = {
     "map": (["{log}", "--poses", "{IN:tum}", "--out", "{OUT:dir}"], "dir", ["--resolution", "0"]),
     "run": (["{log}", "--relations", "{IN:rel}", "--out", "{OUT:dir}", "--quiet"], "dir", ["--map", "foo"]),
     "loops": (["{IN:log}", "--out", "{OUT:dir}", "--quiet"], "dir", ["--sweep", "nonsense"]),
+    "batch": (["{IN:spec}", "--out", "{OUT:dir}", "--quiet"], "dir", ["--cpus-per-run", "0"]),
 }
-SUFFIX = {"log": ".mcap", "tum": ".tum", "rel": ".relations", "g2o": ".g2o", "npz": ".npz", "yaml": ".yaml"}
+SUFFIX = {"log": ".mcap", "tum": ".tum", "rel": ".relations", "g2o": ".g2o", "npz": ".npz", "yaml": ".yaml",
+          "spec": ".yaml"}
 
 
 def _args(cmd, kind, files, tmp_path, unreadable_target, unwritable_dir):

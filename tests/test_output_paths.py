@@ -175,3 +175,10 @@ def test_slam_run_rerun_leaves_only_the_new_runs_files(tmp_path, sim_log, capsys
     assert not second & {"report.html", "metrics.json", "map.npz", "map.png", "map.pgm", "map.yaml"}
     assert json.loads((out / "summary.json").read_text())["scans"] == 50
     assert _hidden(tmp_path) == []
+
+
+def test_batch_checks_its_folder_before_starting_ray(tmp_path, sim_log, unwritable, capsys):
+    """slam batch --out <a folder nothing can be created in>: one error line before any run (no 'batch:' or
+    'ray:' progress line: it used to start Ray, run every log and fail only writing results.csv)."""
+    code, _, err = _slam(["batch", sim_log, "--out", unwritable / "batch"], capsys)
+    _one_error(code, err, unwritable / "batch")

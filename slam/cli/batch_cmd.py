@@ -71,6 +71,7 @@ def batch(
 ) -> None:
     """Run SLAM over many logs × many settings, each run a Ray task; one table and report for them all."""
     from evaluation.batch_report import flat_rows, markdown_table, write_results
+    from registration.atomic import check_output_file
     from registration.errors import ConfigError
     from slam.batch.fingerprint import completed_row
     from slam.batch.spec import load_spec, spec_from_command_line
@@ -84,6 +85,7 @@ def batch(
         raise ConfigError(f"--cpus-per-run {cpus_per_run}: must be > 0")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: exists and is not a folder")
+    check_output_file(out / "results.csv")  # --out is a folder files can be created in (issue 27)
     if len(inputs) == 1 and inputs[0].lower().endswith(_SPEC_SUFFIXES):
         if sweep or config is not None:
             raise ConfigError(f"--sweep and --config belong in the spec ({inputs[0]}: sweep:, config:)")
