@@ -52,3 +52,15 @@ def test_a_quaternion_of_overflowing_size_is_refused_without_a_numpy_warning():
         warnings.simplefilter("error")
         with pytest.raises(ValueError, match="invalid pose"):
             pose_msg_vec(pose)
+
+
+def test_a_damaged_message_definition_is_an_error_naming_the_message(seed_files):
+    """Found by the campaign (seed 2027, case 399): one flipped byte in the bag's Odometry definition renamed
+    'orientation', the decoded /odom messages lacked it and an AttributeError escaped; now it is one line naming
+    the message."""
+    d, s = seed_files
+    seed = s["bag"][0]
+    damaged = mutate(seed.data, "flip", 0.8915335121937934, bytes.fromhex("36"))
+    assert b"orientation" in seed.data and damaged.count(b"orientation") < seed.data.count(b"orientation")
+    outcome = run_case(seed, damaged, d)
+    assert outcome.kind == "error" and "/odom message 0" in outcome.detail, outcome.detail

@@ -711,32 +711,56 @@ class RosLogReader(LogReader):
 
     # -- frames -----------------------------------------------------------------------------
 
+    @contextlib.contextmanager
+    def _fields(self, raw: RawMessage) -> Iterator[None]:
+        """Read fields of *raw*'s decoded message inside the block: one its type lacks — the log carries its
+        own message definitions, and a damaged or unusual one decodes into other fields — is a
+        LogFormatError naming the message, as a bad value is."""
+        try:
+            yield
+        except (AttributeError, TypeError) as exc:
+            raise LogFormatError(self.path, raw.where, f"{raw.msgtype} on {raw.topic} lacks a standard field of "
+                                                       f"its type (its definition in the log differs): {exc}") from None
+
     def _to_frame(self, raw: RawMessage, msg: Any, scan_index: int, **extra: Any) -> Frame:
-        if raw.msgtype == LASER_SCAN:
-            return scan_to_frame(msg, self.path, raw.where, scan_index, **extra)
-        return cloud_to_frame(msg, self.path, raw.where, scan_index, **extra)
+        with self._fields(raw):
+            if raw.msgtype == LASER_SCAN:
+                return scan_to_frame(msg, self.path, raw.where, scan_index, **extra)
+            return cloud_to_frame(msg, self.path, raw.where, scan_index, **extra)
+
+    def _scan_head(self, raw: RawMessage, msg: Any) -> tuple[float, str]:
+        """The stamp (s) and sensor frame of a sensor message, a LaserScan checked first."""
+        with self._fields(raw):
+            if raw.msgtype == LASER_SCAN:
+                check_scan(msg, self.path, raw.where)  # fail at the bad message, not a batch later
+            return header_stamp(msg), strip_frame(msg.header.frame_id)
 
     def _pose_sample(self, raw: RawMessage, msg: Any) -> tuple[float, Array]:
-        try:
-            vec = pose_msg_vec(msg.pose.pose if raw.msgtype == ODOMETRY else msg.pose)
-        except ValueError as exc:
-            raise LogFormatError(self.path, raw.where, f"{raw.topic}: {exc}") from None
-        return header_stamp(msg), vec
+        with self._fields(raw):
+            try:
+                vec = pose_msg_vec(msg.pose.pose if raw.msgtype == ODOMETRY else msg.pose)
+            except ValueError as exc:
+                raise LogFormatError(self.path, raw.where, f"{raw.topic}: {exc}") from None
+            return header_stamp(msg), vec
 
     def _add_tf(self, tf: TfBuffer, raw: RawMessage, static: bool) -> None:
-        try:
-            tf.add_message(self._decode(raw), static=static)
-        except ValueError as exc:
-            raise LogFormatError(self.path, raw.where, f"{raw.topic}: {exc}") from None
+        msg = self._decode(raw)
+        with self._fields(raw):
+            try:
+                tf.add_message(msg, static=static)
+            except ValueError as exc:
+                raise LogFormatError(self.path, raw.where, f"{raw.topic}: {exc}") from None
 
-    def _first(self, topic: str, skip: SkipHandler | None = None) -> Any | None:
-        """The first decoded message of *topic* (None when the topic is empty); with *skip*, the
-        first one that decodes (the bad ones go to *skip*)."""
+    def _first(self, topic: str, skip: SkipHandler | None = None, read: Any = None) -> Any | None:
+        """``read(message)`` of the first message of *topic* (the message itself without *read*; None when
+        the topic is empty); with *skip*, of the first one that decodes and reads (the bad ones go to *skip*)."""
         it = self._raw_messages({topic}, skip)
         try:
             for raw in it:
                 try:
-                    return self._decode(raw)
+                    msg = self._decode(raw)
+                    with self._fields(raw):
+                        return msg if read is None else read(msg)
                 except LogFormatError as exc:
                     if skip is None:
                         raise
@@ -756,14 +780,16 @@ class RosLogReader(LogReader):
                         break
                     try:
                         msg = self._decode(raw)
+                        with self._fields(raw):
+                            child = next((strip_frame(ts.child_frame_id) for ts in msg.transforms
+                                          if strip_frame(ts.header.frame_id) == "odom"), None)
                     except LogFormatError as exc:
                         if skip is None:
                             raise
                         skip(exc)
                         continue
-                    for ts in msg.transforms:
-                        if strip_frame(ts.header.frame_id) == "odom":
-                            return strip_frame(ts.child_frame_id)
+                    if child is not None:
+                        return child
             finally:
                 it.close()  # type: ignore[attr-defined]
         return None
@@ -835,13 +861,11 @@ class RosLogReader(LogReader):
             gt = PoseTrack(self.max_gap) if choice.ground_truth else None
             odom_child: str | None = None
             if choice.odom is not None:
-                first_odom = self._first(choice.odom.name, quiet)
-                odom_child = strip_frame(first_odom.child_frame_id) if first_odom is not None else None
+                odom_child = self._first(choice.odom.name, quiet, lambda m: strip_frame(m.child_frame_id))
             # Dynamic /tf is only needed when the static tree does not already mount the sensor on the base.
             need_tf = bool(choice.tf)
-            first_scan = self._first(choice.sensor.name, quiet)
-            if need_tf and first_scan is not None:
-                sensor0 = strip_frame(first_scan.header.frame_id)
+            sensor0 = self._first(choice.sensor.name, quiet, lambda m: strip_frame(m.header.frame_id))
+            if need_tf and sensor0 is not None:
                 need_tf = not any(
                     b == sensor0 or (b in tf and sensor0 in tf and tf.lookup(b, sensor0, 0.0) is not None)
                     for b in self._base_candidates(odom_child)
@@ -894,9 +918,7 @@ class RosLogReader(LogReader):
                 topic = raw.topic
                 if topic == choice.sensor.name:
                     msg = self._decode(raw)
-                    if laser:
-                        check_scan(msg, self.path, raw.where)  # fail at the bad message, not a batch later
-                    pending.append((raw, msg, scan_index, header_stamp(msg), strip_frame(msg.header.frame_id)))
+                    pending.append((raw, msg, scan_index, *self._scan_head(raw, msg)))
                     scan_index += 1
                 elif choice.odom is not None and topic == choice.odom.name:
                     assert odom is not None
@@ -947,16 +969,16 @@ class RosLogReader(LogReader):
                     self._add_tf(scratch, raw, static=raw.topic in choice.tf_static)
                 continue
             msg = self._decode(raw)
-            if raw.msgtype == LASER_SCAN:
-                check_scan(msg, self.path, raw.where)
-                beams.append(len(msg.ranges))
-            else:
-                try:
-                    view = pointcloud2_structured(msg, ("x", "y", "z"))
-                except ValueError as exc:
-                    raise LogFormatError(self.path, raw.where, f"bad PointCloud2: {exc}") from None
-                beams.append(int(view.size))
-            t = header_stamp(msg)
+            t, _ = self._scan_head(raw, msg)
+            with self._fields(raw):
+                if raw.msgtype == LASER_SCAN:
+                    beams.append(len(msg.ranges))
+                else:
+                    try:
+                        view = pointcloud2_structured(msg, ("x", "y", "z"))
+                    except ValueError as exc:
+                        raise LogFormatError(self.path, raw.where, f"bad PointCloud2: {exc}") from None
+                    beams.append(int(view.size))
             start = t if start is None else min(start, t)
             end = t if end is None else max(end, t)
             scans += 1
