@@ -22,3 +22,13 @@ def one_error_line(code: int, err: str, *names: object) -> str:
     for n in names:
         assert str(n) in lines[0], lines[0]
     return lines[0]
+
+
+def corridor_log(path, n_scans: int, seed: int):  # type: ignore[no-untyped-def]
+    """A simulated corridor tour (SICK LMS laser, wheel odometry, ground truth) written as the MCAP *path*,
+    with its ground-truth map beside it; returns the SimulatedLog."""
+    from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+
+    sim = simulate(load_world("corridor"), n_scans=n_scans, spec=LASER_PRESETS["sick_lms"], seed=seed)
+    write_simulated_log(sim, path)
+    return sim

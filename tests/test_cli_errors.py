@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
 from evaluation.sim.simulate import map_paths
 from slam.cli import main
+from tests.cli_helpers import corridor_log
 
 pytestmark = pytest.mark.xdist_group("pipeline")
 
@@ -25,9 +25,8 @@ def files(tmp_path_factory):
     from slam.cli import main as slam
 
     d = tmp_path_factory.mktemp("inputs")
-    sim = simulate(load_world("corridor"), n_scans=60, spec=LASER_PRESETS["sick_lms"], seed=2)
     log = d / "c.mcap"
-    write_simulated_log(sim, log)
+    sim = corridor_log(log, 60, seed=2)
     with pytest.raises(SystemExit) as ei:
         slam(["run", str(log), "--out", str(d / "run"), "--quiet", "--map", "logodds"])
     assert (ei.value.code or 0) == 0

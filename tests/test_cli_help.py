@@ -9,7 +9,7 @@ import pytest
 import typer
 
 from slam.cli import app
-from tests.cli_helpers import slam
+from tests.cli_helpers import corridor_log, slam
 
 
 def _commands():
@@ -61,8 +61,6 @@ def test_progress_bar_ends_on_the_summary_counts(tmp_path, capsys, monkeypatch):
     multiple of 25 scans, before the final keyframes: 73 against the summary's 84 in the issue)."""
     import rich.progress
 
-    from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
-
     updates: list[dict] = []
 
     class Recording(rich.progress.Progress):
@@ -72,7 +70,7 @@ def test_progress_bar_ends_on_the_summary_counts(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(rich.progress, "Progress", Recording)
     log = tmp_path / "c.mcap"
-    write_simulated_log(simulate(load_world("corridor"), n_scans=62, spec=LASER_PRESETS["sick_lms"], seed=8), log)
+    corridor_log(log, 62, seed=8)
     code, _, err = slam(["run", log, "--out", tmp_path / "run", "--map", "none"], capsys)
     assert code == 0, err
     s = json.loads((tmp_path / "run" / "summary.json").read_text())

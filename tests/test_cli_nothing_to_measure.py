@@ -7,11 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
 from registration import geometry as geo
 from slam.graph import PoseGraph, write_g2o
 from slam.trajectory_io import Trajectory, write_tum
-from tests.cli_helpers import one_error_line
+from tests.cli_helpers import corridor_log, one_error_line
 from tests.cli_helpers import slam as _slam
 
 pytestmark = pytest.mark.xdist_group("pipeline")
@@ -51,8 +50,7 @@ def test_loops_on_a_graph_without_loop_closures_is_an_error(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def sim_log(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
-    sim = simulate(load_world("corridor"), n_scans=60, spec=LASER_PRESETS["sick_lms"], seed=3)
-    write_simulated_log(sim, d / "c.mcap")
+    sim = corridor_log(d / "c.mcap", 60, seed=3)
     return d / "c.mcap", sim
 
 

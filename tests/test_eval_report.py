@@ -43,11 +43,11 @@ def _gt_traj(n_lap=150) -> Trajectory:
 def run_summary(tmp_path_factory) -> dict:
     """summary.json of a real `slam run` (a 60-scan simulated corridor): the report reads what the pipeline
     writes, not a guess of it."""
-    from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
     from slam.cli import main
+    from tests.cli_helpers import corridor_log
 
     d = tmp_path_factory.mktemp("real_run")
-    write_simulated_log(simulate(load_world("corridor"), n_scans=60, spec=LASER_PRESETS["sick_lms"], seed=4), d / "c.mcap")
+    corridor_log(d / "c.mcap", 60, seed=4)
     with pytest.raises(SystemExit) as ei:
         main(["run", str(d / "c.mcap"), "--out", str(d / "run"), "--quiet", "--map", "none"])
     assert (ei.value.code or 0) == 0

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
 from registration.atomic import atomic_directory, atomic_open, check_output_dir, check_output_file
 from registration.errors import OutputError
+from tests.cli_helpers import corridor_log
 from tests.cli_helpers import one_error_line as _one_error
 from tests.cli_helpers import slam as _slam
 
@@ -43,8 +43,7 @@ def unwritable(tmp_path):
 @pytest.fixture(scope="module")
 def sim_log(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
-    sim = simulate(load_world("corridor"), n_scans=80, spec=LASER_PRESETS["sick_lms"], seed=5)
-    write_simulated_log(sim, d / "c.mcap")
+    corridor_log(d / "c.mcap", 80, seed=5)
     return d / "c.mcap"
 
 

@@ -8,9 +8,17 @@ Integer bounds use typer's ``min=``; floats use :func:`real` (click's FloatRange
 from __future__ import annotations
 
 import math
+from enum import Enum
 from typing import Callable
 
-__all__ = ["real", "alphas"]
+__all__ = ["real", "alphas", "Backend"]
+
+
+class Backend(str, Enum):
+    """The pose-graph back ends (slam run --backend, slam solve --backend)."""
+
+    gtsam = "gtsam"
+    chordal = "chordal"
 
 
 def real(low: float | None = None, *, above: bool = False) -> Callable[[str], float]:

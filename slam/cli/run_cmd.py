@@ -8,6 +8,8 @@ from typing import Iterator
 
 import typer
 
+from .options import Backend
+
 
 def load_config(config: Path | None, overrides: dict):  # type: ignore[no-untyped-def]
     """The configuration of a run: *config* (YAML) or the defaults, with the non-None *overrides*
@@ -43,11 +45,6 @@ class Odometry(str, Enum):
     auto = "auto"
     kiss = "kiss"
     icp = "icp"
-
-
-class Backend(str, Enum):
-    gtsam = "gtsam"
-    chordal = "chordal"
 
 
 class MapMethod(str, Enum):

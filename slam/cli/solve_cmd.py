@@ -7,12 +7,7 @@ from pathlib import Path
 
 import typer
 
-from .options import real
-
-
-class Backend(str, Enum):
-    gtsam = "gtsam"
-    chordal = "chordal"
+from .options import Backend, real
 
 
 class Init(str, Enum):
