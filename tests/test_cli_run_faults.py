@@ -186,7 +186,9 @@ def test_ctrl_c_leaves_no_output_or_the_previous_one(tmp_path, previous):
     before = {}
     if previous:
         out.mkdir()
-        for name, text in (("summary.json", '{"scans": 7}'), ("trajectory.tum", "1.0 0 0 0 0 0 0 1\n")):
+        # a previous run's folder: every run writes summary.json and config.yaml (the marker of a run folder)
+        for name, text in (("summary.json", '{"scans": 7}'), ("config.yaml", "max_scans: 7\n"),
+                           ("trajectory.tum", "1.0 0 0 0 0 0 0 1\n")):
             (out / name).write_text(text)
             before[name] = text
     env = dict(os.environ, PYTHONPATH=str(REPO))
