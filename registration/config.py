@@ -165,6 +165,14 @@ class IcpOdometryConfig(_Frozen):
     prior_sigma_rad: float = Field(0.005, gt=0.0)
     prior_sigma_rad_per_m: float = Field(0.08, ge=0.0)
     prior_sigma_rad_per_rad: float = Field(0.1, ge=0.0)
+    #: 2D without wheel odometry: the constant-velocity guess says little when the robot accelerates or
+    #: the log keeps only some scans, so the scan is first placed by a correlative branch-and-bound search
+    #: of ± unguided_window_m (x and y) and ± unguided_window_rad around it on the local map's likelihood
+    #: field (cells of unguided_resolution_m; Olson 2009, Hess et al. 2016 §IV), and ICP starts from
+    #: the best pose when it scores better than the guess; None = ICP from the guess alone
+    unguided_window_m: float | None = Field(None, gt=0.0)
+    unguided_window_rad: float | None = Field(None, gt=0.0)
+    unguided_resolution_m: float = Field(0.05, gt=0.0)
 
 
 def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:

@@ -209,6 +209,7 @@ class IcpOdometry(Odometry):
         self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
         self._map_pose: Array | None = None
         self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
+        self._pyramid = None  # likelihood pyramid of the current map (the search without wheel odometry), likewise
         self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
         self._prev_wheel: tuple[Array, float] | None = None  # previous wheel increment and its interval (s)
 
@@ -235,6 +236,24 @@ class IcpOdometry(Odometry):
             if not self._disagree(prediction, expected):
                 return None  # the wheels move as they did: they are not lumpy here
         return self._last_delta
+
+    def _place_unguided(self, pts: Array, guess: Array) -> Array:
+        """Without wheel odometry (2D): the best pose of a correlative search of the configured window around
+        the constant-velocity *guess* on the local map, when it scores better than the guess."""
+        from . import correlative
+
+        cfg = self.config
+        if self._pyramid is None:
+            window = int(np.ceil(cfg.unguided_window_m / cfg.unguided_resolution_m))
+            levels = int(min(6, np.ceil(np.log2(2 * window + 1))))
+            self._pyramid = correlative.LikelihoodPyramid(np.vstack(self._map)[:, :2], cfg.unguided_resolution_m,
+                                                          cfg.unguided_resolution_m, levels=levels)
+        try:
+            found = correlative.match(pts[:, :2], self._pyramid, _planar(guess), cfg.unguided_window_m,
+                                      cfg.unguided_window_rad or 0.0)
+        except DegenerateInputError:
+            return guess
+        return found.transform if found.score > found.guess_score else guess
 
     def _disagree(self, a: Array, b: Array) -> bool:
         """Increments *a* and *b* differ by more than ``alternative_start_m`` or ``alternative_start_rad``."""
@@ -295,6 +314,8 @@ class IcpOdometry(Odometry):
             self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
         target = self._target
         guided = self._wheel_guided(frame)
+        if not guided and frame.is_planar and cfg.unguided_window_m is not None:
+            guess = self._place_unguided(pts, guess)
         alt = self._alternative_start(frame, prediction)
         # The wheels as a prior only where they are smooth: lumpy ones are a wrong guess.
         prior = self._prior(guess, prediction, frame.dim) if guided and alt is None else None
@@ -324,4 +345,5 @@ class IcpOdometry(Odometry):
             self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)))
             self._map_pose = pose
             self._target = None
+            self._pyramid = None
         return self._emit(frame, pose, cov, accepted)

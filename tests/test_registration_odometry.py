@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from registration import geometry as geo
-from registration.config import KissOdometryConfig
+from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
 from registration.frame import Frame
 from registration.odometry import IcpOdometry, KissOdometry, OdometryStep, wheel_increment
 from tests.conftest import DATA, shared_path
@@ -283,3 +283,33 @@ def test_wheel_prior_holds_icp_odometry_in_a_featureless_corridor():
         worst[prior] = np.abs(np.diff(odo.poses()[:, 0, 3])[1:] - 0.2).max()
     assert worst[0.5] < 1e-3
     assert worst[None] > 0.01
+
+
+def test_without_wheels_a_correlative_search_places_scans_the_constant_velocity_guess_misses():
+    """Scans of a path that stops, turns 25° and starts again (as in logs that kept only some scans): the
+    constant-velocity guess is 0.4 m / 25° off at the stop and the turn, beyond ICP's 0.3 m gate, and
+    ICP alone ends far from the truth; with the correlative search of ±1 m / ±30° first it ends within
+    5 cm and 1° (Olson 2009's scan-to-map matching without odometry)."""
+    from tests.loop_scenes import LASER, room
+
+    sim = pytest.importorskip("evaluation.sim")
+    xyt = [(2.0 + 0.4 * k, 3.0, 0.0) for k in range(6)] + [(4.0, 3.0, np.radians(25.0))]
+    xyt += [(4.0 + 0.4 * k * np.cos(np.radians(25.0)), 3.0 + 0.4 * k * np.sin(np.radians(25.0)), np.radians(25.0))
+            for k in range(1, 8)]
+    R = sim.cast_rays(room(), np.array(xyt), LASER, rng=np.random.default_rng(4), range_noise=0.01)
+    ang = LASER.angles()
+    frames = []
+    for k, r in enumerate(R):
+        ok = np.isfinite(r)
+        frames.append(Frame(0.1 * k, np.column_stack([r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])]), index=k))
+    truth = geo.relative(geo.xytheta_to_matrix(*xyt[0]), geo.xytheta_to_matrix(*xyt[-1]))
+    errors = {}
+    for window in (None, 1.0):
+        odo = IcpOdometry(IcpOdometryConfig(icp=IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05),
+                                            point_to_plane=True, use_wheel_odometry=False, map_voxel_size=0.03,
+                                            unguided_window_m=window, unguided_window_rad=np.radians(30.0)))
+        odo.run(frames)
+        E = geo.relative(truth, odo.world_T_sensor)
+        errors[window] = (np.linalg.norm(E[:2, 3]), abs(np.degrees(geo.matrix_to_xytheta(E)[2])))
+    assert errors[1.0][0] < 0.05 and errors[1.0][1] < 1.0
+    assert errors[None][0] > 0.3 or errors[None][1] > 5.0

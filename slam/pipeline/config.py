@@ -37,6 +37,8 @@ class OdometryStageConfig(_Model):
     icp_alternative_start_rad: float | None = Field(0.05, gt=0)
     icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
     icp_wheel_prior_sigma: float | None = Field(None, gt=0, description="our ICP odometry with smooth wheel odometry: the wheel prediction enters each ICP step as a prior with the wheel_sigma_* model below (floors 1 cm, 5 mrad), weighed against point residuals of this σ (m); None = no prior. Freiburg hospital (relations < 10 s apart, odometry alone): none / 0.05 / 0.15 / 0.5 gave 0.0986 / 0.0928 / 0.0834 / 0.0794 m, but the drift over the whole log grew (0.76 → 0.94–1.30 m) and the far return was lost (SLAM 0.80–1.30 m against 0.119 m without): off by default")
+    unguided_window_m: float | None = Field(1.0, gt=0, description="2D, our ICP odometry without wheel odometry: each scan is first placed by a correlative search of ± this (m, x and y) around the constant-velocity guess on the local map, as far as the robot may stray from constant velocity between two scans; None = ICP from the guess alone")
+    unguided_window_deg: float = Field(30.0, gt=0, description="... and ± this in heading (degrees)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
     min_range: float = Field(0.05, ge=0)
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's

@@ -88,6 +88,8 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
                                          map_voxel_size=0.03 if planar else 0.3,
                                          max_range=c.max_range if planar else 100.0, min_range=c.min_range,
                                          use_wheel_odometry=c.use_wheel_odometry,
+                                         unguided_window_m=c.unguided_window_m if planar else None,
+                                         unguided_window_rad=float(np.radians(c.unguided_window_deg)),
                                          prior_point_sigma=c.icp_wheel_prior_sigma, prior_sigma_per_m=c.wheel_sigma_per_m,
                                          prior_sigma_rad_per_m=c.wheel_sigma_rad_per_m,
                                          prior_sigma_rad_per_rad=c.wheel_sigma_rad_per_rad))
