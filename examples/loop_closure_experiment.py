@@ -18,7 +18,7 @@ def main() -> None:
     ap.add_argument("--sensor", default="sick_lms", help="laser preset: sick_lms, hokuyo_utm30, fastgpom")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--sweep", action="append", default=None,
-                    help="NAME=start:stop:count (repeatable); default min_fitness=0.4:0.9:6")
+                    help="NAME=start:stop:count (repeatable); default min_relative_fitness=0.4:0.9:6")
     ap.add_argument("--out", default="out/loop_experiment")
     args = ap.parse_args()
 
@@ -37,7 +37,7 @@ def main() -> None:
     print(f"2. front end: {len(record.keyframes)} keyframes in {record.time_s:.1f} s")
 
     # 3. Replay loop closure + pose graph for every setting and score it against the true revisits.
-    sweeps = [parse_sweep(s) for s in (args.sweep or ["min_fitness=0.4:0.9:6"])]
+    sweeps = [parse_sweep(s) for s in (args.sweep or ["min_relative_fitness=0.4:0.9:6"])]
     result = sweep_recorded(record, config, sweeps)
     print(f"3. {len(result.rows)} settings; true revisit keyframes: {result.rows[0]['revisits']}")
 

@@ -165,16 +165,53 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
     at least this high and the guess otherwise; the rest is pruned without being expanded.
     """
     g = search_grid(scan_points, pyramid, guess, window_m, window_rad)
-    top = pyramid.levels
-    while top > 0 and 2 ** (top - 1) >= 2 * g.w + 1:  # a level below already spans the window in one block
-        top -= 1
+    top = _top_level(pyramid, g)
     guess_score = float(pyramid.score_candidates(0, g.cells, np.array([g.k]), np.zeros((1, 2), np.int64))[0])
     floor = max(guess_score, min_score)
     if min_gain > 0 and guess_score >= min_score:
         floor = guess_score + min_gain - 1e-12  # a maximum of exactly guess + min_gain still counts
-    best, best_rot, ox, oy = kernels.branch_and_bound(pyramid.grids, g.cells, top, g.w, floor, g.k, 0, 0)
+    best, best_rot, ox, oy = kernels.branch_and_bound(pyramid.grids, g.cells, top, g.w, floor, g.k, 0, 0,
+                                                      0, 0, 0, 0, -1)
     if best_rot == g.k and ox == 0 and oy == 0:  # nothing beat the guess (or min_score)
         return CorrelativeResult(np.asarray(guess, dtype=np.float64).copy(), guess_score, guess_score)
     res = pyramid.resolution
     T = G.xytheta_to_matrix(g.x0 + ox * res, g.y0 + oy * res, g.thetas[best_rot])
     return CorrelativeResult(T, float(best), guess_score)
+
+
+def _top_level(pyramid: LikelihoodPyramid, g: SearchGrid) -> int:
+    """The coarsest level worth starting from: a level below that already spans the window in one block."""
+    top = pyramid.levels
+    while top > 0 and 2 ** (top - 1) >= 2 * g.w + 1:
+        top -= 1
+    return top
+
+
+def best_elsewhere(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
+                   pose: Array, radius_m: float, radius_rad: float, min_score: float) -> float | None:
+    """The best score above *min_score* in the window of :func:`match` around *guess*, leaving out the
+    poses within *radius_m* (in x and in y) and *radius_rad* of the planar 4×4 *pose*; None when no pose
+    elsewhere reaches *min_score* (the bound prunes the rest). A match is unique when nothing elsewhere
+    scores almost as well: the ratio test of place recognition (Lowe, IJCV 2004, §7.1), here over the
+    correlative search window."""
+    g = search_grid(scan_points, pyramid, guess, window_m, window_rad)
+    x, y, th = G.matrix_to_xytheta(np.asarray(pose))
+    step = float(g.thetas[1] - g.thetas[0]) if len(g.thetas) > 1 else 1.0
+    res = pyramid.resolution
+    ex = (int(round((th - g.thetas[0]) / step)), int(round((x - g.x0) / res)), int(round((y - g.y0) / res)),
+          int(np.ceil(radius_rad / step)), int(np.ceil(radius_m / res)))
+    floor = float(min_score) - 1e-12
+    best, _, _, _ = kernels.branch_and_bound(pyramid.grids, g.cells, _top_level(pyramid, g), g.w, floor, -1, 0, 0, *ex)
+    return float(best) if best > floor else None
+
+
+def score_at(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array) -> float:
+    """The correlative score (mean likelihood of the scan's points, 0–1) of one planar 4×4 *pose*."""
+    pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
+    if len(pts) == 0:
+        return 0.0
+    x, y, th = G.matrix_to_xytheta(np.asarray(pose))
+    c, s = np.cos(th), np.sin(th)
+    moved = np.stack([c * pts[:, 0] - s * pts[:, 1] + x, s * pts[:, 0] + c * pts[:, 1] + y], axis=-1)
+    cells = pyramid.cells(moved[None]).astype(np.int32)
+    return float(pyramid.score_candidates(0, cells, np.zeros(1, np.int64), np.zeros((1, 2), np.int64))[0])

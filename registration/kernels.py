@@ -324,7 +324,8 @@ def score_candidates(grid, cells, rot, offsets):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy):  # pragma: no cover - compiled
+def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
+                     ex_r, ex_x, ex_y, ex_dr, ex_dxy):  # pragma: no cover - compiled
     """Depth-first branch and bound of ``registration.correlative.match`` (Hess et al. 2016, Algorithm 3).
 
     *grids* ``(L, H, W)`` uint8: the pyramid's max-pooled levels; *cells* ``(R, N, 2)``: the scan's
@@ -333,7 +334,9 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy):  #
     level 0 (single offsets). Children are visited best first, so the first leaves reached are good
     and the bound prunes the rest; a block is expanded only when its bound (the max-pooled score)
     exceeds *best*. Returns the best (score, rotation, ox, oy) strictly above the starting *best*,
-    or the starting values when nothing in the window beats it."""
+    or the starting values when nothing in the window beats it. With *ex_dxy* ≥ 0 the candidates within
+    *ex_dr* rotations and *ex_dxy* cells (in x and in y) of (*ex_r*, *ex_x*, *ex_y*) are excluded: the
+    best pose elsewhere, for the uniqueness test of a match (blocks wholly inside are skipped)."""
     R = cells.shape[0]
     h = 1 << top
     ng = (2 * w) // h + 1
@@ -363,6 +366,10 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy):  #
         lv, r, x, y, bound = s_lv[sp], s_r[sp], s_x[sp], s_y[sp], s_b[sp]
         if bound <= best:
             continue
+        if ex_dxy >= 0 and abs(r - ex_r) <= ex_dr:
+            span = (1 << lv) - 1
+            if x >= ex_x - ex_dxy and x + span <= ex_x + ex_dxy and y >= ex_y - ex_dxy and y + span <= ex_y + ex_dxy:
+                continue  # every candidate of the block is excluded
         if lv == 0:
             best, best_rot, best_ox, best_oy = bound, r, x, y
             continue
@@ -401,7 +408,7 @@ def compile_all() -> None:
                  normals, have, 3, g.points, *g.args())
     score_candidates(np.zeros((4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), np.zeros(1, np.int64),
                      np.zeros((1, 2), np.int64))
-    branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0)
+    branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1)
 
 
 if __name__ == "__main__":

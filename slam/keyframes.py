@@ -1,4 +1,5 @@
-"""Keyframe selection: a scan becomes a keyframe when the robot moved or turned enough, or time passed.
+"""Keyframes: the scans kept as pose-graph nodes, and when a scan becomes one (the robot moved or
+turned enough, or time passed).
 
 The thresholds are the usual ones of graph SLAM front ends (e.g. Grisetti et al., "A Tutorial on
 Graph-Based SLAM", 2010, §III: nodes every ~0.5 m or 0.5 rad) and keep the pose graph sparse while
@@ -14,6 +15,30 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, Field
 
 from registration import geometry as G
+from registration.frame import Frame
+
+
+@dataclass
+class Keyframe:
+    """A scan kept as a pose-graph node.
+
+    Attributes:
+        id: node id (0, 1, 2, … in time order).
+        scan_index: index of the scan among the scans read.
+        stamp: seconds.
+        odom_pose: ``world_T_base`` from the odometry source (the front end's estimate).
+        base_T_sensor: sensor on the robot.
+        points: sensor-frame hit points used for loop-closure ICP (voxel-downsampled), metres.
+        frame: the full scan (beams kept for 2D occupancy mapping).
+    """
+
+    id: int
+    scan_index: int
+    stamp: float
+    odom_pose: NDArray[np.float64]
+    base_T_sensor: NDArray[np.float64]
+    points: NDArray[np.float64]
+    frame: Frame
 
 
 class KeyframeConfig(BaseModel):

@@ -27,7 +27,7 @@ from slam.pipeline.run import run_slam
 
 pytestmark = pytest.mark.xdist_group("pipeline")
 
-SWEEP = "min_fitness=0.4:0.8:3"  # includes the default 0.6
+SWEEP = "min_relative_fitness=0.4:0.8:3"  # includes the default 0.6
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def sim_log(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cli_run(sim_log, tmp_path_factory):
-    """`slam loops LOG --sweep min_fitness=0.4:0.8:3` (relations found beside the log)."""
+    """`slam loops LOG --sweep min_relative_fitness=0.4:0.8:3` (relations found beside the log)."""
     out = tmp_path_factory.mktemp("out") / "sweep"
     with pytest.raises(SystemExit) as exc:
         main(["loops", str(sim_log), "--sweep", SWEEP, "--out", str(out), "--quiet"])
@@ -61,11 +61,11 @@ def _csv_rows(out):
         return list(csv.DictReader(fh))
 
 
-def test_recall_does_not_rise_with_min_fitness(cli_run):
-    """Stricter verification (higher min_fitness) accepts fewer closures and closes no more revisits;
+def test_recall_does_not_rise_with_min_relative_fitness(cli_run):
+    """Stricter verification (higher min_relative_fitness) accepts fewer closures and closes no more revisits;
     the recall denominator (true revisits) is the same for every setting."""
     rows = json.loads((cli_run / "loops.json").read_text())["rows"]
-    fit = [r["min_fitness"] for r in rows]
+    fit = [r["min_relative_fitness"] for r in rows]
     assert fit == sorted(fit) and len(fit) == 3
     recall = [r["recall"] for r in rows]
     assert all(a >= b for a, b in zip(recall, recall[1:])), recall
@@ -81,7 +81,7 @@ def test_recall_does_not_rise_with_min_fitness(cli_run):
 def test_default_row_matches_run_slam(cli_run, sim_log):
     """The grid point at the default setting accepts (and prunes) exactly as many closures as run_slam."""
     rows = json.loads((cli_run / "loops.json").read_text())["rows"]
-    row = next(r for r in rows if r["min_fitness"] == pytest.approx(LoopConfig().min_fitness))
+    row = next(r for r in rows if r["min_relative_fitness"] == pytest.approx(LoopConfig().min_relative_fitness))
     result = run_slam(open_log(sim_log).frames(), SlamConfig.model_validate({"mapping": {"enabled": False}}))
     assert row["accepted"] == len(result.loops) > 0
     assert row["pruned"] == result.loop_stats["pruned"]
@@ -93,7 +93,7 @@ def test_csv_and_json_agree_one_row_per_grid_point(cli_run):
     rows = _csv_rows(cli_run)
     assert list(rows[0].keys()) == doc["columns"]
     assert len(rows) == len(doc["rows"]) == len(parse_sweep(SWEEP).values)
-    assert doc["ground_truth"] is True and doc["sweeps"] == {"min_fitness": [0.4, 0.6, 0.8]}
+    assert doc["ground_truth"] is True and doc["sweeps"] == {"min_relative_fitness": [0.4, 0.6, 0.8]}
     for c_row, j_row in zip(rows, doc["rows"]):
         for k in doc["columns"]:
             v = j_row[k]
@@ -123,28 +123,28 @@ def test_without_ground_truth_precision_is_self_consistency(sim_log):
 def test_sweep_parsing_and_grid():
     """start and stop are both included, count values evenly spaced; integer fields get ints; the grid is the
     cartesian product, first sweep slowest, every point a valid LoopConfig with the swept values."""
-    s = parse_sweep("max_rmse=0.05:0.1:6")
+    s = parse_sweep("max_relative_rmse=0.05:0.1:6")
     assert len(s.values) == 6 and s.values[0] == 0.05 and s.values[-1] == pytest.approx(0.1)
     assert np.allclose(np.diff(s.values), 0.01)
     k = parse_sweep("exclude_recent_keyframes=10:20:3")
     assert k.values == (10, 15, 20) and all(isinstance(v, int) for v in k.values)
-    assert parse_sweep("submap_keyframes=1:3:5").values == (1, 2, 3)  # rounded, repeats dropped
+    assert parse_sweep("local_map_keyframes=1:3:5").values == (1, 2, 3)  # rounded, repeats dropped
     grid = sweep_grid(LoopConfig(), [s, k])
     assert len(grid) == 18
-    assert [g[0] for g in grid[:3]] == [{"max_rmse": 0.05, "exclude_recent_keyframes": v} for v in (10, 15, 20)]
-    assert all(cfg.max_rmse == st["max_rmse"] and cfg.exclude_recent_keyframes == st["exclude_recent_keyframes"]
+    assert [g[0] for g in grid[:3]] == [{"max_relative_rmse": 0.05, "exclude_recent_keyframes": v} for v in (10, 15, 20)]
+    assert all(cfg.max_relative_rmse == st["max_relative_rmse"] and cfg.exclude_recent_keyframes == st["exclude_recent_keyframes"]
                for st, cfg in grid)
     assert sweep_grid(LoopConfig(), []) == [({}, LoopConfig())]
     # A check that can be switched off (None) is swept over its numeric values.
-    r = parse_sweep("max_rotation_sigma_deg=0.1:0.3:3")
+    r = parse_sweep("overlap_radius_m=0.1:0.3:3")
     assert r.values == (0.1, 0.2, 0.3)
-    assert [cfg.max_rotation_sigma_deg for _, cfg in sweep_grid(LoopConfig(max_rotation_sigma_deg=None), [r])] == [0.1, 0.2, 0.3]
+    assert [cfg.overlap_radius_m for _, cfg in sweep_grid(LoopConfig(overlap_radius_m=None), [r])] == [0.1, 0.2, 0.3]
 
 
-@pytest.mark.parametrize("bad", ["min_fitness", "min_fitness=0.5:0.8", "nope=1:2:3", "use_descriptor=0:1:2",
-                                 "icp_gates=0.1:0.2:2", "min_fitness=0.5:1.5:3", "min_fitness=a:0.8:3",
-                                 "min_fitness=0.5:0.8:0", "min_fitness=0.5:0.8:2.5", "max_rmse=-1:0.1:3",
-                                 "min_fitness=nan:0.8:3"])
+@pytest.mark.parametrize("bad", ["min_relative_fitness", "min_relative_fitness=0.5:0.8", "nope=1:2:3", "descriptor=0:1:2",
+                                 "icp_gates_m=0.1:0.2:2", "min_relative_fitness=0.5:1.5:3", "min_relative_fitness=a:0.8:3",
+                                 "min_relative_fitness=0.5:0.8:0", "min_relative_fitness=0.5:0.8:2.5", "max_relative_rmse=-1:0.1:3",
+                                 "min_relative_fitness=nan:0.8:3"])
 def test_bad_sweep_fails_in_one_line_without_output(bad, sim_log, tmp_path, capsys):
     """A malformed or out-of-range --sweep exits 2 with one `error:` line and creates no output folder."""
     out = tmp_path / "never"
@@ -162,7 +162,7 @@ def test_same_field_swept_twice_is_an_error(sim_log, tmp_path, capsys):
     """Two --sweep options for one field exit 2 with one line; nothing is written."""
     out = tmp_path / "never"
     with pytest.raises(SystemExit) as exc:
-        main(["loops", str(sim_log), "--sweep", "max_rmse=0.05:0.1:2", "--sweep", "max_rmse=0.1:0.2:2",
+        main(["loops", str(sim_log), "--sweep", "max_relative_rmse=0.05:0.1:2", "--sweep", "max_relative_rmse=0.1:0.2:2",
               "--out", str(out)])
     assert exc.value.code == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1 and not out.exists()

@@ -9,7 +9,7 @@ import pytest
 from registration import geometry as G
 from slam.pipeline.backend import PipelineBackend
 from slam.pipeline.config import BackendConfig, LoopConfig
-from slam.pipeline.loop_closure import LoopClosure
+from slam.loops import LoopClosure
 
 
 def square_loop_graph(rounds: int, outliers: list[tuple[int, int, np.ndarray]]) -> tuple[PipelineBackend, np.ndarray]:

@@ -12,7 +12,7 @@ from slam.pipeline.run import make_odometry
 
 def test_yaml_round_trip(tmp_path):
     """to_yaml → from_yaml gives back an equal configuration (what config.yaml beside every run relies on)."""
-    cfg = SlamConfig.model_validate({"loops": {"max_candidates": 7}, "mapping": {"max_range_m": 9.5}})
+    cfg = SlamConfig.model_validate({"loops": {"near_candidates": 7}, "mapping": {"max_range_m": 9.5}})
     p = tmp_path / "c.yaml"
     p.write_text(cfg.to_yaml())
     assert SlamConfig.from_yaml(p) == cfg

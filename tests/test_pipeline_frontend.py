@@ -10,7 +10,7 @@ from scipy.stats import chi2
 from registration import geometry as G
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.frontend import FrontEnd, OdometryEdge
-from slam.pipeline.wheel_calibration import WheelNoiseCalibration
+from slam.noise_scale import NoiseScaleCalibration
 
 
 def _front(probability: float | None = 0.999) -> FrontEnd:
@@ -110,7 +110,7 @@ def test_wheel_calibration_recovers_the_scale_the_innovations_were_drawn_with(k_
     """Innovations drawn from N(0, Σ_reg + diag(k_t, k_t, k_r)² Σ_model) with random registration covariances: the
     moment fit returns k_t and k_r within 8 % (2000 samples)."""
     rng = np.random.default_rng(11)
-    cal = WheelNoiseCalibration(2)
+    cal = NoiseScaleCalibration(2)
     s = np.array([k_t, k_t, k_r])
     for _ in range(2000):
         L = rng.normal(size=(3, 3)) * np.array([0.01, 0.01, 0.002])[:, None]
@@ -123,14 +123,14 @@ def test_wheel_calibration_recovers_the_scale_the_innovations_were_drawn_with(k_
 
 
 def test_wheel_calibration_waits_for_its_samples_and_stays_within_its_bounds():
-    cal = WheelNoiseCalibration(2, min_samples=10, bounds=(0.05, 10.0))
+    cal = NoiseScaleCalibration(2, min_samples=10, bounds=(0.05, 10.0))
     A, B = np.eye(3) * 1e-4, np.eye(3) * 1e-4
     for _ in range(9):
         cal.add(np.zeros(3), A, B)
     assert (cal.scale_translation, cal.scale_rotation) == (1.0, 1.0)
     cal.add(np.zeros(3), A, B)  # perfect agreement: the registration explains everything
     assert (cal.scale_translation, cal.scale_rotation) == (0.05, 0.05)
-    cal = WheelNoiseCalibration(2, min_samples=10, bounds=(0.05, 10.0))
+    cal = NoiseScaleCalibration(2, min_samples=10, bounds=(0.05, 10.0))
     for _ in range(10):
         cal.add(np.full(3, 10.0), A, B)  # 1000 σ apart: capped
     assert (cal.scale_translation, cal.scale_rotation) == (10.0, 10.0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from registration import geometry as G
-from slam.pipeline.uncertainty import RelativeUncertainty
+from slam.loops.uncertainty import RelativeUncertainty
 
 
 def _chain(n: int, var_t: float, var_r: float, planar: bool = True) -> tuple[RelativeUncertainty, np.ndarray]:

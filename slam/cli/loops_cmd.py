@@ -35,7 +35,7 @@ def _cell(v: object) -> str:
 def loops(
     log: Path = typer.Argument(..., help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence."),
     sweep: list[str] = typer.Option([], "--sweep", help="NAME=start:stop:count over a numeric loops setting (e.g. "
-                                    "min_fitness=0.5:0.8:4); repeat for a grid. Default: the configured setting only."),
+                                    "min_relative_fitness=0.5:0.8:4); repeat for a grid. Default: the configured setting only."),
     out: Path = typer.Option(Path("out/loops"), "--out", help="Output folder: loops.csv, loops.json, pr.png (atomic; "
                              "an earlier sweep's folder there is replaced whole)."),
     config: Path | None = typer.Option(None, "--config",

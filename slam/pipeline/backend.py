@@ -18,7 +18,7 @@ from registration import geometry as G
 from slam.graph.posegraph import KINDS, PoseGraph, RobustKernel
 
 from .config import BackendConfig, LoopConfig
-from .loop_closure import LoopClosure
+from slam.loops import LoopClosure
 
 Array = NDArray[np.float64]
 
@@ -130,12 +130,19 @@ class PipelineBackend:
         """A fresh iSAM2 holding the whole graph, initialised at its batch LM solution."""
         self.smoother_restarts += 1
         P = self._solve_batch(self.poses)
-        self._smoother = self._new_smoother()
-        for nid, T in zip(self.graph.node_ids, P):
-            self._smoother.add_node(int(nid), T)
-        for edge in self.graph.edges():
-            self._smoother.add_edge(edge.i, edge.j, edge.measurement, edge.information, edge.kernel)
-        self._smoother.update()
+        while True:
+            self._smoother = self._new_smoother()
+            for nid, T in zip(self.graph.node_ids, P):
+                self._smoother.add_node(int(nid), T)
+            for edge in self.graph.edges():
+                self._smoother.add_edge(edge.i, edge.j, edge.measurement, edge.information, edge.kernel)
+            try:
+                self._smoother.update()
+                return
+            except RuntimeError:
+                if self._factorization == "qr":
+                    raise
+                self._factorization = "qr"  # Cholesky lost definiteness on the fresh graph too: QR from now on
 
     def _solve_chordal(self, initial: Array) -> Array:
         from slam.backends.chordal import solve_chordal

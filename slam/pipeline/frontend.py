@@ -11,7 +11,7 @@ exact. When the edge cannot be evaluated (too few overlapping points) the per-sc
 compounded along the way (:func:`registration.geometry.compound_covariance`) are used instead.
 
 Wheel odometry, when the log has it, gives a second edge per keyframe interval, its noise model
-calibrated online against the registration (:mod:`slam.pipeline.wheel_calibration`).
+calibrated online against the registration (:mod:`slam.noise_scale`).
 """
 
 from __future__ import annotations
@@ -29,35 +29,12 @@ from registration.frame import Frame
 from registration.icp import IcpTarget, evaluate_alignment
 from registration.odometry import Odometry, OdometryStep
 from registration.voxel import voxel_downsample
-from slam.keyframes import KeyframeSelector
+from slam.keyframes import Keyframe, KeyframeSelector
 
 from .config import SlamConfig
-from .wheel_calibration import WheelNoiseCalibration
+from slam.noise_scale import NoiseScaleCalibration
 
 Array = NDArray[np.float64]
-
-
-@dataclass
-class Keyframe:
-    """A scan kept as a pose-graph node.
-
-    Attributes:
-        id: node id (0, 1, 2, … in time order).
-        scan_index: index of the scan among the scans read.
-        stamp: seconds.
-        odom_pose: ``world_T_base`` from the odometry source (the front end's estimate).
-        base_T_sensor: sensor on the robot.
-        points: sensor-frame hit points used for loop-closure ICP (voxel-downsampled), metres.
-        frame: the full scan (beams kept for 2D occupancy mapping).
-    """
-
-    id: int
-    scan_index: int
-    stamp: float
-    odom_pose: Array
-    base_T_sensor: Array
-    points: Array
-    frame: Frame
 
 
 @dataclass
@@ -115,7 +92,7 @@ class FrontEnd:
         self._dof: int | None = None
         self.wheel_edges: list[WheelEdge] = []
         self.wheel_edges_dropped = 0
-        self.wheel_calibration: WheelNoiseCalibration | None = None  # created with the first wheel edge
+        self.wheel_calibration: NoiseScaleCalibration | None = None  # created with the first wheel edge
         self._lumpy_since_kf = False  # the odometry took its constant-velocity start since the last keyframe
 
     def latest_wheel_edge(self, kf: Keyframe) -> WheelEdge | None:
@@ -208,7 +185,7 @@ class FrontEnd:
             return None
         if c.wheel_calibration:
             if self.wheel_calibration is None:
-                self.wheel_calibration = WheelNoiseCalibration(2 if self._dof == 3 else 3, c.wheel_calibration_min_edges)
+                self.wheel_calibration = NoiseScaleCalibration(2 if self._dof == 3 else 3, c.wheel_calibration_min_edges)
             if consistent:
                 self.wheel_calibration.add(d, edge.covariance, model)
             model = self.wheel_calibration.calibrated(model)

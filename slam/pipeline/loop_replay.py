@@ -29,7 +29,7 @@ from registration.frame import Frame
 from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig, SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, WheelEdge
-from .loop_closure import LoopClosure
+from slam.loops import LoopClosure
 from .online_graph import OnlineGraph
 from .trajectory import interpolate_scan_poses
 

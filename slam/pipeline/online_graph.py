@@ -16,8 +16,8 @@ from numpy.typing import NDArray
 from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig
 from .frontend import Keyframe, OdometryEdge, WheelEdge
-from .loop_closure import LoopCloser, LoopClosure
-from .uncertainty import RelativeUncertainty
+from slam.loops import LoopCloser, LoopClosure
+from slam.loops.uncertainty import RelativeUncertainty
 
 Array = NDArray[np.float64]
 
@@ -26,14 +26,13 @@ class OnlineGraph:
     """Keyframes in, optimised keyframe poses out (``backend.poses`` online, :meth:`finish` at the end)."""
 
     def __init__(self, loops: LoopConfig, backend: BackendConfig, planar: bool) -> None:
-        self.closer = LoopCloser(loops, planar)
         self.backend = PipelineBackend(backend, loops, planar)
         self.loops: list[LoopClosure] = []
         self.planar = planar
-        # Every edge's covariance: each keyframe's uncertainty relative to the new one widens its search radius
-        # (tracked up to 10 m σ, or as far as the global search looks).
-        reach = loops.global_max_radius_m if (planar and loops.global_search) else 0.0
-        self.uncertainty = RelativeUncertainty(planar, limit_m2=max(100.0, reach**2))
+        # Every edge's covariance: each keyframe's uncertainty relative to the new one sizes its search
+        # (tracked up to 100 m σ; beyond, a place is out of reach of any search).
+        self.uncertainty = RelativeUncertainty(planar, limit_m2=100.0**2)
+        self.closer = LoopCloser(loops, planar, self.uncertainty)
         self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
 
     def add(self, keyframes: list[Keyframe], edge: OdometryEdge | None, wheel: WheelEdge | None) -> list[LoopClosure]:
@@ -54,14 +53,14 @@ class OnlineGraph:
         t1 = time.perf_counter()
         poses = be.poses
         unc = self.uncertainty.from_node(kf.id, poses[:, : (2 if self.planar else 3), 3])
-        new = self.closer.detect(keyframes, poses, kf.id, unc)
+        new, relocalise = self.closer.detect(keyframes, poses, kf.id, unc)
         t2 = time.perf_counter()
         for lc in new:
             be.add_loop(lc)
             self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
         self.loops.extend(new)
-        if any(lc.source == "global" for lc in new):
-            be.relocalise()  # a group of closures beyond the estimate's reach: move the graph onto them
+        if relocalise:
+            be.relocalise()  # a group of closures the estimate could not vouch for: move the graph onto them
         else:
             be.update(loop_added=bool(new))
         self.times["loop_closure_s"] += t2 - t1
@@ -75,7 +74,7 @@ class OnlineGraph:
     @property
     def stats(self) -> dict:
         """Loop detection counters plus the closures pruned by the final solve."""
-        s = vars(self.closer.stats).copy()
+        s = self.closer.summary()
         s["pruned"] = self.backend.pruned_loops
         s["isam2_restarts"] = self.backend.smoother_restarts
         return s

@@ -23,7 +23,7 @@ from registration.odometry import Odometry
 from .backend import PipelineBackend
 from .config import SlamConfig
 from .frontend import Keyframe
-from .loop_closure import LoopClosure
+from slam.loops import LoopClosure
 from .online_graph import OnlineGraph
 from .trajectory import interpolate_scan_poses
 

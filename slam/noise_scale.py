@@ -1,19 +1,16 @@
-"""Online calibration of the wheel-odometry noise model against the scan registration.
+"""Online calibration of a noise model by the normalised innovation squared (method of moments).
 
-The wheel edges' covariance comes from a generic model (σ_xy = a·d, σ_θ = b·d + c·|Δθ|, config
-``odometry.wheel_sigma_*``), but robots differ: the Freiburg hospital's wheels agree with its scan
-registration ~7× better in heading than Intel's or MIT CSAIL's. Each keyframe interval gives one
-innovation, the disagreement ``δ = Log(registration⁻¹ · wheels)`` with covariance
-``Σ_reg + Σ_wheel``; if both covariances are right, ``δᵀ (Σ_reg + Σ_wheel)⁻¹ δ`` averages the
-dimension. With the registration covariance fixed (it is estimated from its own residuals), the
-wheel model is scaled per block — translation by ``k_t``, rotation by ``k_r`` — so that this mean
-holds over the edges seen so far: a method-of-moments fit of the normalised innovation squared,
-as in innovation-based adaptive estimation (Mehra, "Approaches to adaptive filtering", IEEE TAC
-17(5), 1972, §IV). The mean, not the median, of the statistic: the error is heavy-tailed (lumps,
-slides), and the median fitted ~2× smaller scales, which over-trusted Intel's wheels (relation
-error 0.0164 → 0.0185 m).
+Two estimators of one quantity disagree by an *innovation* δ whose covariance is the sum of theirs,
+``Σ_fixed + Σ_model``; if both are right, ``δᵀ (Σ_fixed + Σ_model)⁻¹ δ`` averages the dimension. With
+``Σ_fixed`` trusted, the model is scaled per block — translation by ``k_t``, rotation by ``k_r`` — so
+that this mean holds over the innovations seen so far: a method-of-moments fit of the normalised
+innovation squared, as in innovation-based adaptive estimation (Mehra, "Approaches to adaptive
+filtering", IEEE TAC 17(5), 1972, §IV). The mean, not the median, of the statistic: errors are
+heavy-tailed, and the median fits scales that are too small.
 
-Only edges that passed the wheel gate are samples: a gated lump is a fault, not noise.
+Used for the wheel-odometry model against the scan registration, one innovation per keyframe interval
+(:class:`slam.pipeline.frontend.FrontEnd`): the Freiburg hospital's wheels agree with its scans ~7×
+better in heading than Intel's or MIT CSAIL's, and one generic wheel model cannot say so.
 """
 
 from __future__ import annotations
@@ -24,8 +21,8 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 
 
-class WheelNoiseCalibration:
-    """Running estimate of the scales ``(k_t, k_r)`` of the wheel noise model.
+class NoiseScaleCalibration:
+    """Running estimate of the scales ``(k_t, k_r)`` of a noise model.
 
     Args:
         n_translation: translation dimensions of the tangent vector (2 planar, 3 in 3D); the rest
@@ -34,7 +31,7 @@ class WheelNoiseCalibration:
         every: re-estimate after this many new innovations, or after 10 % more, whichever is
             later (each fit is O(samples); the estimate settles as they grow).
         bounds: the scales are kept within these (a calibration, not a switch that turns the
-            wheels off or makes them exact).
+            model off or makes it exact).
     """
 
     def __init__(self, n_translation: int, min_samples: int = 50, every: int = 25,
@@ -46,7 +43,7 @@ class WheelNoiseCalibration:
         self.scale_translation = 1.0
         self.scale_rotation = 1.0
         self._innovations: list[Array] = []
-        self._registration: list[Array] = []
+        self._fixed: list[Array] = []
         self._model: list[Array] = []
         self._since_fit = 0
 
@@ -54,11 +51,11 @@ class WheelNoiseCalibration:
     def samples(self) -> int:
         return len(self._innovations)
 
-    def add(self, innovation: Array, registration_cov: Array, model_cov: Array) -> None:
-        """One keyframe interval: the disagreement *innovation* (tangent vector), the registration
-        edge's covariance and the *uncalibrated* wheel-model covariance over it."""
+    def add(self, innovation: Array, fixed_cov: Array, model_cov: Array) -> None:
+        """One innovation (tangent vector), the covariance of the trusted estimator and the
+        *uncalibrated* model covariance."""
         self._innovations.append(np.asarray(innovation, dtype=float))
-        self._registration.append(np.asarray(registration_cov, dtype=float))
+        self._fixed.append(np.asarray(fixed_cov, dtype=float))
         self._model.append(np.asarray(model_cov, dtype=float))
         self._since_fit += 1
         # Refit every `every` samples, and no more often than every 10 % of them (the estimate has settled).
@@ -67,7 +64,7 @@ class WheelNoiseCalibration:
             self._fit()
 
     def calibrated(self, model_cov: Array) -> Array:
-        """The wheel-model covariance scaled by the current estimate (k² per block)."""
+        """The model covariance scaled by the current estimate (k² per block)."""
         n = self.n_translation
         s = np.r_[np.full(n, self.scale_translation), np.full(len(model_cov) - n, self.scale_rotation)]
         return model_cov * np.outer(s, s)
@@ -75,7 +72,7 @@ class WheelNoiseCalibration:
     def _fit(self) -> None:
         self._since_fit = 0
         d = np.array(self._innovations)
-        A = np.array(self._registration)
+        A = np.array(self._fixed)
         B = np.array(self._model)
         n = self.n_translation
         self.scale_translation = self._solve(d[:, :n], A[:, :n, :n], B[:, :n, :n])

@@ -67,6 +67,7 @@ class RelativeUncertainty:
         self._n = 0
         self._ends = np.zeros((64, 2), dtype=np.int64)  # (older, newer) keyframe of each edge
         self._var = np.zeros((64, 2))  # translation, rotation variance (traces)
+        self._step_var = np.zeros((64, 2))  # row k: the fused variances of the step from keyframe k − 1 to k
 
     @staticmethod
     def _key(lo, hi):  # type: ignore[no-untyped-def]
@@ -91,6 +92,29 @@ class RelativeUncertainty:
         self._ends[at] = (lo, hi)
         self._var[at] = (np.trace(C[:d, :d]), np.trace(C[d:, d:]))
         self._n = n + 1
+        if hi == lo + 1:  # a step of the chain: parallel edges add their information
+            while hi >= len(self._step_var):
+                self._step_var = np.concatenate([self._step_var, np.zeros_like(self._step_var)])
+            old = self._step_var[hi]
+            new = self._var[at]
+            self._step_var[hi] = np.where(old > 0, old * new / np.maximum(old + new, 1e-300), new)
+
+    def chain_variance(self, a: int, b: int, positions: Array) -> tuple[float, float]:
+        """(translation variance m², rotation variance rad²) of keyframe *b* relative to *a* along the chain
+        of consecutive keyframes a, a+1, …, b — each step's parallel edges (registration and wheels) fused
+        by adding their information per block — with the lever-arm propagation of :meth:`from_node`,
+        lever arms to *b* on the current estimate *positions*. The pairwise consistency of two closures
+        uses it for the short stretches between their old and between their new keyframes."""
+        lo, hi = min(a, b), max(a, b)
+        if lo == hi:
+            return 0.0, 0.0
+        steps = np.arange(lo + 1, hi + 1)
+        if hi >= len(self._step_var) or np.any(self._step_var[steps, 0] <= 0):
+            return self.limit_m2, self.limit_m2  # a step without an edge: no chain
+        centre = 0.5 * (positions[steps - 1] + positions[steps])
+        lever2 = np.sum((centre - positions[b]) ** 2, axis=1)
+        vt, vr = self._step_var[steps, 0], self._step_var[steps, 1]
+        return float(np.sum(vt + vr * lever2)), float(np.sum(vr))
 
     def from_node(self, j: int, positions: Array) -> NodeUncertainty:
         """Uncertainty of every keyframe ``0 … len(positions) − 1`` relative to keyframe *j*.

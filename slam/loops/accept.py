@@ -1,0 +1,203 @@
+"""The acceptance stage: which verified alignments become pose-graph constraints.
+
+* A verified alignment the estimate vouches for (its search window was at the floor, see
+  :mod:`slam.loops.candidates`) is accepted when it is consistent with the estimate: the squared
+  Mahalanobis distance of the alignment from the estimate's relative pose, under the sum of both
+  covariances, is within the ``consistency_probability`` quantile of χ²(dof) (the χ² gate of
+  Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
+* Everything else waits, *pending*: an alignment the estimate cannot vouch for, and one that
+  contradicts the estimate (the graph may be overconfident after a long loop). Pending closures are
+  accepted together when ``group_min_size`` of them, from as many keyframes, are pairwise consistent
+  — each pair's cycle through the estimate's short stretches between their old and between their new
+  keyframes passes the same χ² gate (pairwise consistent measurement set maximisation, PCM: Mangelson,
+  Dominic, Eustice & Vasudevan, ICRA 2018; the maximum clique is exact here) — and no closure
+  accepted on its own between the same stretches disagrees with them. A group is decided once the
+  window of ``group_window_keyframes`` after its first member has passed, so the evidence against it
+  that arrives in that window (a closure accepted where the estimate was) is seen.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from registration import geometry as G
+from slam.keyframes import Keyframe
+
+from .config import LoopConfig
+from .types import LoopClosure, LoopStats, Rejection, Verified
+from .uncertainty import RelativeUncertainty
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class Pending:
+    """A verified alignment waiting for a group, as the constraint it would become."""
+
+    closure: LoopClosure
+    vouched: bool
+    map_half: int  # of the local map it was verified against (its follow-ups use the same)
+
+
+def to_closure(v: Verified, keyframes: list[Keyframe], planar: bool, group: bool = False) -> LoopClosure:
+    """The base-frame constraint ``i_base_T_j_base`` of a verified sensor-frame alignment, its covariance
+    carried through ``base_T_sensor`` of keyframe j (right perturbations: Ad(B_j) Σ Ad(B_j)ᵀ)."""
+    c = v.candidate
+    Bi, Bj = keyframes[c.i].base_T_sensor, keyframes[c.j].base_T_sensor
+    A = G.adjoint(Bj, planar=planar)
+    return LoopClosure(c.i, c.j, Bi @ v.transform @ G.inverse(Bj), A @ v.covariance @ A.T, v.fitness, v.rmse_m,
+                       c.source.value, group)
+
+
+def mahalanobis2(expected: Array, expected_cov: Array, T: Array, cov: Array, planar: bool) -> float:
+    """Squared Mahalanobis distance of the pose *T* (covariance *cov*) from *expected* (covariance
+    *expected_cov*), on the tangent space of *expected*."""
+    d = G.inverse(expected) @ T
+    innov = G.se2_log(d) if planar else G.se3_log(d)
+    return float(innov @ np.linalg.solve(expected_cov + cov, innov))
+
+
+class Acceptance:
+    """Decides on verified alignments; keeps the pending ones and forms their groups."""
+
+    def __init__(self, config: LoopConfig, planar: bool, uncertainty: RelativeUncertainty, stats: LoopStats) -> None:
+        self.config = config
+        self.planar = planar
+        self.dof = 3 if planar else 6
+        self.uncertainty = uncertainty
+        self.stats = stats
+        self.gate = float(chi2.ppf(config.consistency_probability, self.dof))
+        self.pending: list[Pending] = []
+        self.recent: list[LoopClosure] = []  # accepted on their own, within the group window
+
+    def consider(self, v: Verified, keyframes: list[Keyframe], unique: Callable[[Verified], bool]) -> LoopClosure | None:
+        """Accept *v* now (vouched for and consistent with the estimate) or keep it pending (None) when it
+        is *unique* in its search window (else it is dropped: a group of aliases agrees as well as a group
+        of revisits)."""
+        c = v.candidate
+        if c.vouched and c.estimate is not None:
+            if mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) <= self.gate:
+                lc = to_closure(v, keyframes, self.planar)
+                self.recent.append(lc)
+                self.stats.accepted += 1
+                return lc
+            self.stats.rejections[Rejection.INCONSISTENT] += 1  # held: a group may still overturn the estimate
+        if not unique(v):
+            self.stats.rejections[Rejection.AMBIGUOUS] += 1
+            return None
+        self.pending.append(Pending(to_closure(v, keyframes, self.planar), c.vouched, v.map_half))
+        return None
+
+    def decide(self, j: int, poses: Array) -> list[LoopClosure]:
+        """After keyframe *j*: the group whose window has just passed, if one agrees (empty otherwise).
+        Pending closures older than the window expire."""
+        c = self.config
+        W = c.group_window_keyframes
+        self.recent = [lc for lc in self.recent if lc.j > j - 2 * W]
+        if not self.pending:
+            return []
+        first = min(p.closure.j for p in self.pending)
+        if j < first + W - 1:
+            return []  # the window after the first pending closure is not complete yet
+        window = [p for p in self.pending if p.closure.j < first + W]
+        group = self._max_consistent_set([p.closure for p in window], poses)
+        accepted: list[LoopClosure] = []
+        if len({lc.j for lc in group}) >= c.group_min_size:
+            if self._contradicted(group, poses):
+                self.stats.groups_contradicted += 1
+            else:
+                accepted = group
+        members = {id(lc) for lc in accepted}
+        self.stats.pending_expired += sum(1 for p in window if id(p.closure) not in members)
+        # The window is decided: its closures leave the pool (a group's members as accepted ones).
+        self.pending = [p for p in self.pending if p.closure.j >= first + W]
+        for lc in accepted:
+            lc.group = True
+        self.stats.accepted_as_group += len(accepted)
+        return accepted
+
+    # ------------------------------------------------------------------ pairwise consistency
+    def consistent(self, a: LoopClosure, b: LoopClosure, poses: Array) -> bool:
+        """PCM's pairwise test: the cycle Z_a⁻¹ (X_ia⁻¹ X_ib) Z_b (X_jb⁻¹ X_ja) is within the χ² gate of the
+        identity, under both closures' covariances and the chain variances between their old and
+        between their new keyframes (:meth:`RelativeUncertainty.chain_variance`), rotation variance
+        carried to translation over the closures' lever arm."""
+        E = (G.inverse(a.measurement) @ G.relative(poses[a.i], poses[b.i]) @ b.measurement
+             @ G.relative(poses[b.j], poses[a.j]))
+        e = G.se2_log(E) if self.planar else G.se3_log(E)
+        d = 2 if self.planar else 3
+        pos = poses[:, :d, 3]
+        ti, ri = self.uncertainty.chain_variance(a.i, b.i, pos)
+        tj, rj = self.uncertainty.chain_variance(a.j, b.j, pos)
+        var_r = ri + rj + np.trace(a.covariance[d:, d:]) + np.trace(b.covariance[d:, d:])
+        lever2 = float(np.sum(a.measurement[:d, 3] ** 2) + np.sum(b.measurement[:d, 3] ** 2))
+        var_t = ti + tj + np.trace(a.covariance[:d, :d]) + np.trace(b.covariance[:d, :d]) + var_r * lever2
+        m2 = float(e[:d] @ e[:d]) / (var_t / d) + float(e[d:] @ e[d:]) / (var_r / (self.dof - d))
+        return m2 <= self.gate
+
+    def _max_consistent_set(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
+        """The largest pairwise-consistent subset (maximum clique of the consistency graph, Bron–Kerbosch
+        with pivoting); ties go to the subset with most distinct new keyframes."""
+        n = len(closures)
+        if n == 0:
+            return []
+        ok = np.eye(n, dtype=bool)
+        for a in range(n):
+            for b in range(a + 1, n):
+                ok[a, b] = ok[b, a] = self.consistent(closures[a], closures[b], poses)
+        nbrs = [set(np.flatnonzero(ok[a]).tolist()) - {a} for a in range(n)]
+        best: list[int] = []
+
+        def key(members: list[int]) -> tuple[int, int]:
+            return len({closures[m].j for m in members}), len(members)
+
+        def expand(r: set[int], p: set[int], x: set[int]) -> None:
+            nonlocal best
+            if not p and not x:
+                if key(sorted(r)) > key(best):
+                    best = sorted(r)
+                return
+            if len(r) + len(p) <= len(best) and len({closures[m].j for m in r | p}) <= key(best)[0]:
+                return  # cannot beat the best
+            pivot = max(p | x, key=lambda u: len(nbrs[u] & p))
+            for v in list(p - nbrs[pivot]):
+                expand(r | {v}, p & nbrs[v], x & nbrs[v])
+                p.remove(v)
+                x.add(v)
+
+        expand(set(), set(range(n)), set())
+        return [closures[m] for m in best]
+
+    def _contradicted(self, group: list[LoopClosure], poses: Array) -> bool:
+        """Whether a closure accepted on its own between the same stretches of old and new keyframes (within
+        the group window of a member's) disagrees with a member: the estimate was right there, and the
+        group is an alias (a door along a corridor whose doors repeat)."""
+        W = self.config.group_window_keyframes
+        return any(abs(r.i - a.i) <= W and abs(r.j - a.j) <= W and not self.consistent(a, r, poses)
+                   for a in group for r in self.recent)
+
+    def relocalises(self, group: list[LoopClosure], poses: Array) -> bool:
+        """Whether the accepted *group* says the estimate is off by more than a robust kernel lets a
+        closure pull: a member beyond ``relocalise_sigmas`` of the estimate, whitened by its own covariance
+        (the back end then re-solves without kernels first)."""
+        limit = self.config.relocalise_sigmas**2 * self.dof
+        for lc in group:
+            d = G.relative(lc.measurement, G.relative(poses[lc.i], poses[lc.j]))
+            e = G.se2_log(d) if self.planar else G.se3_log(d)
+            if float(e @ np.linalg.solve(lc.covariance, e)) > limit:
+                return True
+        return False
+
+    def hypotheses(self) -> list[Pending]:
+        """Pending closures the estimate could not vouch for (global, descriptor, uncertain spatial): the
+        places the next keyframes are followed into, newest per old place."""
+        latest: dict[int, Pending] = {}
+        for p in self.pending:
+            if not p.vouched and (p.closure.i not in latest or p.closure.j > latest[p.closure.i].closure.j):
+                latest[p.closure.i] = p
+        return list(latest.values())

@@ -1,0 +1,148 @@
+"""Candidate sources: which old keyframes a new one may be revisiting, and where to look.
+
+One rule sizes everything: the estimate's uncertainty of each old keyframe relative to the new one,
+along the graph (:mod:`slam.loops.uncertainty`). A place is a candidate when its estimate lies within
+the overlap radius plus ``window_sigmas`` standard deviations of the new keyframe, and the correlative
+search around the estimate's relative pose spans the same ``window_sigmas`` standard deviations per
+axis (at least the floors). The estimate *vouches* for a candidate when that window is still at its
+floor: a match consistent with such an estimate is a revisit, not an alias.
+
+Sources (Olson 2009 §2 for spatial gating, Hess et al. 2016 §V for the global search):
+
+* spatial: the ``near_candidates`` nearest places within reach, plus the ``uncertain_candidates``
+  most uncertain ones (an old pass is not crowded out by the recent pass beside it);
+* descriptor (2D): places whose Scan Context descriptor (Kim & Kim 2018) matches, when the spatial
+  ones closed nothing: revisits the estimate has lost;
+* global (2D): places whose window would exceed ``max_window_m`` yet lie within reach: one at a time,
+  searched over their whole local map;
+* hypothesis: the place of a recent pending closure, from that closure composed with the odometry
+  since, so that a revisit the estimate cannot vouch for gathers its group.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+from slam.keyframes import Keyframe
+
+from .config import LoopConfig
+from .local_map import sensor_relative
+from .types import Candidate, Source, Window
+from .uncertainty import NodeUncertainty
+
+Array = NDArray[np.float64]
+
+
+def overlap_radius(kf: Keyframe, config: LoopConfig) -> float:
+    """Distance (m) within which two keyframes can see the same structure: the configured one, or the
+    upper quartile of the ranges of *kf*'s scan points (how far this sensor sees in this environment,
+    most of the time)."""
+    if config.overlap_radius_m is not None:
+        return float(config.overlap_radius_m)
+    r = np.linalg.norm(kf.points[:, :2], axis=1)
+    return float(np.percentile(r, 75)) if len(r) else 1.0
+
+
+def windows(uncertainty: NodeUncertainty, config: LoopConfig, planar: bool) -> tuple[Array, Array, Array]:
+    """Per keyframe: the search window half-widths (m, rad) and the per-axis position σ (m), from its
+    uncertainty relative to the new keyframe (``window_sigmas`` σ, at least the floors)."""
+    d, r = (2, 1) if planar else (3, 3)
+    sd_xy = np.sqrt(uncertainty.position_var / d)
+    sd_th = np.sqrt(uncertainty.rotation_var / r)
+    k = config.window_sigmas
+    win_xy = np.maximum(k * sd_xy, config.window_floor_m)
+    win_th = np.minimum(np.maximum(k * sd_th, np.radians(config.window_floor_deg)), np.pi)
+    return win_xy, win_th, sd_xy
+
+
+def _vouched(win_xy: float, win_th: float, config: LoopConfig) -> bool:
+    return bool(win_xy <= config.window_floor_m and win_th <= np.radians(config.window_floor_deg))
+
+
+def _spread(pool: NDArray[np.int64], quota: int, chosen: list[int], spacing: int) -> list[int]:
+    """Up to *quota* of *pool* (in order) whose local maps (±*spacing*) do not overlap those *chosen*."""
+    added: list[int] = []
+    for i in pool:
+        if len(added) >= quota:
+            break
+        if all(abs(int(i) - k) > spacing for k in chosen + added):
+            added.append(int(i))
+    return added
+
+
+def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig,
+            planar: bool, radius_m: float) -> list[Candidate]:
+    """Spatial candidates of the new keyframe *j*: places within *radius_m* + ``window_sigmas`` σ whose
+    window stays within ``max_window_m``; the nearest first, then the most uncertain."""
+    last = j - config.exclude_recent_keyframes
+    if last <= 0:
+        return []
+    win_xy, win_th, sd = windows(uncertainty, config, planar)
+    dim = 2 if planar else 3
+    dist = np.linalg.norm(poses[:last, :dim, 3] - poses[j, :dim, 3], axis=1)
+    reach = (dist <= radius_m + config.window_sigmas * sd[:last]) & (win_xy[:last] <= config.max_window_m)
+    pool = np.flatnonzero(reach)
+    pool = pool[np.argsort(dist[pool], kind="stable")]
+    chosen = _spread(pool, config.near_candidates, [], config.local_map_keyframes)
+    uncertain = pool[win_xy[pool] > config.window_floor_m]
+    uncertain = uncertain[np.argsort(-sd[uncertain], kind="stable")]
+    chosen += _spread(uncertain, config.uncertain_candidates, chosen, config.local_map_keyframes)
+    out = []
+    for i in chosen:
+        est = sensor_relative(keyframes, poses, i, j)
+        out.append(Candidate(i, j, Source.SPATIAL, est, Window(float(win_xy[i]), float(win_th[i])),
+                             (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config)))
+    return out
+
+
+def global_places(poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig, planar: bool,
+                  radius_m: float, spacing: int) -> NDArray[np.int64]:
+    """Places (every *spacing*-th keyframe, older than the exclusion window) the new keyframe *j* may be
+    revisiting although their window would exceed ``max_window_m``: within *radius_m* +
+    ``window_sigmas`` σ of its estimate."""
+    last = j - config.exclude_recent_keyframes
+    if last <= 0:
+        return np.zeros(0, dtype=np.int64)
+    ids = np.arange(0, last, max(1, spacing))
+    win_xy, _, sd = windows(uncertainty, config, planar)
+    dist = np.linalg.norm(poses[ids, :2, 3] - poses[j, :2, 3], axis=1)
+    return ids[(win_xy[ids] > config.max_window_m) & (dist <= radius_m + config.window_sigmas * sd[ids])]
+
+
+def global_candidate(keyframes: list[Keyframe], poses: Array, i: int, j: int, uncertainty: NodeUncertainty,
+                     config: LoopConfig, extent: tuple[Array, Array]) -> Candidate:
+    """Search place *i* whole for keyframe *j*: every position over the local map's *extent* (its lower
+    and upper corners, m) and every heading (Cartographer's ``MatchFullSubmap``: an estimate this far off
+    says little about the heading either)."""
+    lo, hi = extent
+    est = sensor_relative(keyframes, poses, i, j)
+    centre = G.xytheta_to_matrix(*(0.5 * (lo + hi)), G.matrix_to_xytheta(est)[2])
+    return Candidate(i, j, Source.GLOBAL, centre, Window(float(0.5 * (hi - lo).max()), np.pi),
+                     (est, uncertainty.covariance(i, True)), False)
+
+
+def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: Array, j: int,
+               uncertainty: NodeUncertainty, config: LoopConfig, radius_m: float, sector_rad: float) -> list[Candidate]:
+    """Candidates from descriptor *hits* ``(place, yaw)``: the same position, the descriptor's relative
+    heading, searched over ± half the overlap radius and ± two sectors; vouched like a spatial candidate
+    when the estimate is sure of the pair (a match that contradicts it is then an alias)."""
+    win_xy, win_th, _ = windows(uncertainty, config, True)
+    out = []
+    for i, yaw in hits:
+        est = sensor_relative(keyframes, poses, i, j)
+        w = Window(max(config.window_floor_m, 0.5 * radius_m), 2.0 * sector_rad)
+        out.append(Candidate(i, j, Source.DESCRIPTOR, G.xytheta_to_matrix(0.0, 0.0, yaw), w,
+                             (est, uncertainty.covariance(i, True)), _vouched(win_xy[i], win_th[i], config)))
+    return out
+
+
+def hypothesis(i: int, j_from: int, i_T_from: Array, keyframes: list[Keyframe], poses: Array, j: int,
+               config: LoopConfig, map_half: int) -> Candidate:
+    """Follow the pending closure ``i_sensor_T_{j_from}_sensor`` to the new keyframe *j* along the
+    estimate's odometry since *j_from*; searched at the floor window against the local map of ±*map_half*
+    keyframes the closure was found against, never vouched for."""
+    guess = i_T_from @ sensor_relative(keyframes, poses, j_from, j)
+    return Candidate(i, j, Source.HYPOTHESIS, guess, Window(config.window_floor_m, np.radians(config.window_floor_deg)),
+                     None, False, map_half)

@@ -1,0 +1,173 @@
+"""Loop closure for each new keyframe: candidate sources → one verifier → one acceptance stage.
+
+:class:`LoopCloser` wires the stages of :mod:`slam.loops.candidates`, :mod:`slam.loops.verify` and
+:mod:`slam.loops.accept` in the order every keyframe goes through:
+
+1. spatial candidates within the estimate's uncertainty, each verified, and accepted when the
+   estimate vouches for it and agrees (else pending);
+2. the places of recent pending closures the estimate could not vouch for, followed into with the
+   odometry since (so a revisit gathers its group);
+3. when nothing was accepted, descriptor candidates (2D); and a global search of one place within
+   reach that no spatial window could cover (2D, every ``global_every_keyframes``);
+4. the group decision over the pending closures whose window has passed.
+
+The result is the accepted closures and whether the graph must be relocalised (a group says the
+estimate is off by more than a robust kernel lets a closure pull).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+from slam.keyframes import Keyframe
+
+from . import candidates as C
+from .accept import Acceptance
+from .config import LoopConfig
+from .descriptor import DescriptorIndex, PolarDescriptorConfig, polar_descriptor
+from .local_map import LocalMaps
+from .types import Candidate, LoopClosure, LoopStats, Rejection, Source
+from .uncertainty import NodeUncertainty, RelativeUncertainty
+from .verify import Reference, Verifier
+
+Array = NDArray[np.float64]
+
+
+class LoopCloser:
+    """Finds, verifies and accepts loop closures for each new keyframe (see the module docstring)."""
+
+    def __init__(self, config: LoopConfig, planar: bool, uncertainty: RelativeUncertainty) -> None:
+        self.config = config
+        self.planar = planar
+        self.stats = LoopStats()
+        self.maps = LocalMaps()
+        self.verifier = Verifier(config, planar, self.maps)
+        self.acceptance = Acceptance(config, planar, uncertainty, self.stats)
+        self.index = DescriptorIndex(PolarDescriptorConfig()) if planar and config.descriptor else None
+        self._path_m: list[float] = []  # cumulative odometry path length at each keyframe
+        self._global_turn = 0
+        self._global_searched: dict[int, int] = {}  # place → keyframe of its last global search
+        self.trace: list[tuple[Candidate, object, dict]] | None = None  # set to a list: (candidate, outcome, figures) of every verification
+
+    def summary(self) -> dict:
+        """The counters of :class:`LoopStats` (``summary.json`` ``loop_stats``)."""
+        return self.stats.as_dict()
+
+    # ------------------------------------------------------------------ local-map size
+    def local_map_half(self, i: int, window_m: float) -> int:
+        """Half-width (keyframes) of keyframe *i*'s local map for a search window of ± *window_m*: the
+        smallest of ``local_map_keyframes`` · 2ⁿ (or ``max_local_map_keyframes``) whose path on each side of
+        *i* covers the window plus ``local_map_path_m`` (or reaches the ends of the trajectory so far)."""
+        c = self.config
+        path = self._path_m
+        need = window_m + c.local_map_path_m
+        h = max(1, c.local_map_keyframes)
+        while h < c.max_local_map_keyframes:
+            lo, hi = max(0, i - h), min(len(path) - 1, i + h)
+            if (lo == 0 or path[i] - path[lo] >= need) and (hi == len(path) - 1 or path[hi] - path[i] >= need):
+                return h
+            h *= 2
+        return c.max_local_map_keyframes
+
+    @property
+    def global_half(self) -> int:
+        """Half-width of the local maps the global search matches against, and the spacing of its places."""
+        return max(self.config.local_map_keyframes, self.config.max_local_map_keyframes // 2)
+
+    # ------------------------------------------------------------------ one keyframe
+    def detect(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty
+               ) -> tuple[list[LoopClosure], bool]:
+        """Closures accepted for the new keyframe *j* given the estimate *poses* and every keyframe's
+        *uncertainty* relative to *j*; and whether they include a group (the graph must be relocalised)."""
+        c = self.config
+        kj = keyframes[j]
+        step = 0.0 if j == 0 else float(np.linalg.norm(G.relative(keyframes[j - 1].odom_pose, kj.odom_pose)[:3, 3]))
+        self._path_m.append((self._path_m[-1] if self._path_m else 0.0) + step)
+        if not c.enabled:
+            return [], False
+        radius = C.overlap_radius(kj, c)
+        ref = self.verifier.reference(keyframes, poses, j)
+        out: list[LoopClosure] = []
+        tried: set[int] = set()
+        for cand in C.spatial(keyframes, poses, j, uncertainty, c, self.planar, radius):
+            tried.add(cand.i)
+            self._run(cand, keyframes, poses, ref, out)
+        for p in self.acceptance.hypotheses():
+            h = p.closure
+            if h.i in tried or h.j >= j:
+                continue
+            i_T_h = G.inverse(keyframes[h.i].base_T_sensor) @ h.measurement @ keyframes[h.j].base_T_sensor
+            self._run(C.hypothesis(h.i, h.j, i_T_h, keyframes, poses, j, c, p.map_half), keyframes, poses, ref, out)
+            tried.add(h.i)
+        if not out and self.planar:
+            self._descriptor(keyframes, poses, j, uncertainty, radius, ref, out, tried)
+        if self.planar and c.global_search:  # closures with recent passes say nothing of the old places out of reach
+            self._global(keyframes, poses, j, uncertainty, radius, ref, out)
+        if self.index is not None:
+            self.index.add(j, kj.points)
+        group = self.acceptance.decide(j, poses)
+        return out + group, bool(group) and self.acceptance.relocalises(group, poses)
+
+    def _run(self, cand: Candidate, keyframes: list[Keyframe], poses: Array, ref: Reference | None,
+             out: list[LoopClosure]) -> None:
+        """Verify one candidate and hand a verified alignment to the acceptance stage."""
+        self.stats.candidates[cand.source] += 1
+        if cand.map_half is not None:
+            half = cand.map_half
+        elif cand.source is Source.GLOBAL:
+            half = self.global_half
+        else:
+            half = self.local_map_half(cand.i, cand.window.xy_m)
+        features = {} if self.trace is not None else None
+        result = self.verifier.verify(cand, keyframes, poses, half, ref, features)
+        if self.trace is not None:
+            self.trace.append((cand, result, features))
+        if isinstance(result, Rejection):
+            self.stats.rejections[result] += 1
+            return
+        self.stats.verified += 1
+        lc = self.acceptance.consider(result, keyframes, lambda v: self.verifier.unique(v, keyframes, poses, half))
+        if lc is not None:
+            out.append(lc)
+
+    def _descriptor(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty,
+                    radius: float, ref: Reference | None, out: list[LoopClosure], tried: set[int]) -> None:
+        c = self.config
+        if self.index is None or c.descriptor_candidates == 0:
+            return
+        desc = polar_descriptor(keyframes[j].points, self.index.cfg)
+        hits = self.index.query(desc, k=c.descriptor_candidates, exclude_after=j - c.exclude_recent_keyframes)
+        hits = [(i, yaw) for i, dist, yaw in hits if dist <= c.descriptor_max_distance
+                and all(abs(i - t) > c.local_map_keyframes for t in tried)]
+        sector = 2.0 * np.pi / self.index.cfg.n_sectors
+        for cand in C.descriptor(hits, keyframes, poses, j, uncertainty, c, radius, sector):
+            self._run(cand, keyframes, poses, ref, out)
+            if out:
+                return
+
+    def _global(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty,
+                radius: float, ref: Reference | None, out: list[LoopClosure]) -> None:
+        """One global search, every ``global_every_keyframes``: of the places within reach that no spatial
+        window could cover, the most likely one (nearest the estimate in standard deviations) not searched
+        in the last ``global_every_keyframes`` × (places within reach) keyframes — so that every place is
+        searched once before any is searched again."""
+        c = self.config
+        places = C.global_places(poses, j, uncertainty, c, self.planar, radius, self.global_half)
+        if len(places) == 0:
+            return
+        self._global_turn += 1
+        if self._global_turn % c.global_every_keyframes:
+            return
+        memory = c.global_every_keyframes * len(places)
+        fresh = [int(p) for p in places if j - self._global_searched.get(int(p), -10**9) > memory]
+        if not fresh:
+            return
+        sd = np.sqrt(uncertainty.position_var[fresh])
+        d = np.linalg.norm(poses[fresh, :2, 3] - poses[j, :2, 3], axis=1)
+        i = fresh[int(np.argmin(d / np.maximum(sd, 1e-9)))]
+        self._global_searched[i] = j
+        self.stats.global_searches += 1
+        lm = self.maps.get(keyframes, poses, i, self.global_half)
+        self._run(C.global_candidate(keyframes, poses, i, j, uncertainty, c, lm.extent()), keyframes, poses, ref, out)

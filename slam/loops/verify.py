@@ -1,0 +1,304 @@
+"""The verifier: one test sequence for every candidate, whatever its source.
+
+1. In 2D, a correlative branch-and-bound search of the candidate's window (Hess et al. 2016, §V;
+   Olson 2009) finds the basin; its best score must reach ``min_relative_score`` of the keyframe's
+   own score (below).
+2. ICP (point-to-line by default, :mod:`registration.point_to_plane`) refines from there.
+3. Tests of the fit: the residual χ² test at the sensor's noise (Förstner & Wrobel 2016, the
+   variance-factor test); inlier fraction and RMSE against the keyframe's own registration; in 2D,
+   negative information — neither scan may have points where the other saw free space (Olson 2009,
+   §III-B).
+4. For an alignment the acceptance stage holds pending, local uniqueness: no pose elsewhere within
+   three floor windows of the match may score within ``ambiguity_ratio`` of it (the ratio test of
+   place recognition); a corridor whose matches slide along it, or doors repeating along it, fails
+   it. Farther aliases (the same corridor on another floor of the map) are left to the group test.
+
+*The keyframe's own registration* (:class:`Reference`) is what a true match of this scan looks like:
+the scan against the local map of the keyframes just before it, at the estimate's relative pose. A
+scanner with half its beams returning nothing, or an outdoor scan whose walls are 30 m away, fits
+its own recent past less well than an indoor scan does; the thresholds are fractions of that, not
+absolute numbers.
+
+The covariance of a verified alignment is the ICP's Fisher information at the larger of the a-priori
+and the a-posteriori residual variance (the a-posteriori variance factor), plus the configured floor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from registration import correlative
+from registration import geometry as G
+from registration.config import IcpConfig
+from registration.errors import DegenerateInputError
+from registration.icp import IcpResult, evaluate_alignment, icp
+from registration.point_to_plane import icp_point_to_plane
+from slam.keyframes import Keyframe
+
+from .config import LoopConfig
+from .local_map import LocalMap, LocalMaps, sensor_relative
+from .types import Candidate, Rejection, Source, Verified
+
+Array = NDArray[np.float64]
+
+_PYRAMID_LEVELS = 5  # 2^5 cells per top block: larger windows start from more blocks, not deeper grids
+_UNIQUE_RADIUS_CELLS = 3  # the neighbourhood of a match left out of the uniqueness search
+_UNIQUE_RADIUS_RAD = np.radians(3.0)
+_UNIQUE_WINDOW_FLOORS = 3  # uniqueness is asked around the match, within three floor windows (±3 m, ±15° by default)
+
+
+@dataclass
+class Reference:
+    """The new keyframe's scan against its own preceding local map, at the estimate's relative pose.
+
+    Attributes:
+        fitness: inlier fraction at the verifier's final ICP gate.
+        rmse_m: RMSE of those pairs.
+        sigma2: residual variance of the point-to-line model (m²), Res / (n − dof).
+        covariance: its pose covariance (Fisher information at the a-priori σ).
+        local_map, pose: the map and ``map_sensor_T_keyframe_sensor``, for :meth:`score`.
+    """
+
+    fitness: float
+    rmse_m: float
+    sigma2: float
+    covariance: Array
+    local_map: LocalMap
+    pose: Array
+    _scores: dict[float, float] = field(default_factory=dict)
+
+    def score(self, maps: LocalMaps, points: Array, resolution: float) -> float:
+        """Correlative score of the scan *points* on its own map at *resolution* (m)."""
+        if resolution not in self._scores:
+            pyr = maps.pyramid(self.local_map, resolution, _PYRAMID_LEVELS)
+            self._scores[resolution] = correlative.score_at(points, pyr, self.pose)
+        return self._scores[resolution]
+
+
+class Verifier:
+    """Verifies :class:`~slam.loops.types.Candidate` pairs against the old keyframe's local map."""
+
+    def __init__(self, config: LoopConfig, planar: bool, maps: LocalMaps) -> None:
+        self.config = config
+        self.planar = planar
+        self.dof = 3 if planar else 6
+        self.maps = maps
+        c = config
+        self._icp = IcpConfig(gates=c.icp_gates_m, max_iterations=c.icp_max_iterations,
+                              tol_translation=c.icp_tolerance, tol_rotation=c.icp_tolerance,
+                              robust="cauchy", robust_scale=c.icp_sigma_m * 2.0, sigma=c.icp_sigma_m,
+                              chi2_factor=c.chi2_factor, covariance_model="plane", workers=1)
+        self.gate = float(chi2.ppf(c.consistency_probability, self.dof))
+        self._icp_fine = self._icp.model_copy(update={"gates": tuple(g for g in c.icp_gates_m if g < c.icp_gates_m[0]) or c.icp_gates_m})
+        self._align = icp if c.icp_method == "point" else icp_point_to_plane
+
+    # ------------------------------------------------------------------ the keyframe's own registration
+    def reference(self, keyframes: list[Keyframe], poses: Array, j: int) -> Reference | None:
+        """:class:`Reference` of keyframe *j*, or None when it has no ``2 h + 1`` predecessors yet
+        (h = ``local_map_keyframes``) or the registration is degenerate."""
+        h = self.config.local_map_keyframes
+        centre = j - h - 1
+        if centre < 0:
+            return None
+        lm = self.maps.get(keyframes, poses, centre, h)
+        pose = sensor_relative(keyframes, poses, centre, j)
+        try:
+            res = evaluate_alignment(keyframes[j].points, lm.target, pose, self.config.icp_gates_m[-1], self._icp)
+        except DegenerateInputError:
+            return None
+        return Reference(res.fitness, res.rmse, _sigma2(res), res.covariance, lm, pose)
+
+    # ------------------------------------------------------------------ verification
+    def verify(self, c: Candidate, keyframes: list[Keyframe], poses: Array, half: int,
+               ref: Reference | None, features: dict | None = None) -> Verified | Rejection:
+        """Run the test sequence on candidate *c* against keyframe ``c.i``'s local map of ±*half* keyframes.
+
+        With a *features* dict, every quality figure is computed and stored in it even after a test
+        failed (for the development-set analysis; slower)."""
+        cfg = self.config
+        full = features is not None
+        f = features if full else {}
+        verdict: Rejection | None = None
+
+        def fail(reason: Rejection) -> bool:
+            nonlocal verdict
+            if verdict is None:
+                verdict = reason
+            return not full  # stop at the first failure unless every figure is wanted
+
+        kj = keyframes[c.j]
+        lm = self.maps.get(keyframes, poses, c.i, half)
+        start, score, pyr, pts = c.guess, 0.0, None, kj.points
+        resolution = cfg.global_resolution_m if c.source is Source.GLOBAL else cfg.correlative_resolution_m
+        try:
+            if self.planar and cfg.correlative:
+                pyr = self.maps.pyramid(lm, resolution, _PYRAMID_LEVELS)
+                pts = kj.points[np.hypot(kj.points[:, 0], kj.points[:, 1]) <= cfg.correlative_max_range_m]
+                own = ref.score(self.maps, pts, resolution) if ref is not None else 0.0
+                need = cfg.min_relative_score * own
+                found = correlative.match(pts, pyr, c.guess, c.window.xy_m, c.window.theta_rad,
+                                          min_score=0.5 * need if full else need)
+                f["score"], f["score_ratio"] = found.score, found.score / own if own > 0 else np.inf
+                if (found.score < need or found.score <= 0.0) and fail(Rejection.SCORE):
+                    return Rejection.SCORE
+                start, score = found.transform, found.score
+            # From the correlative search's pose (within a cell of the basin) the finer gates suffice.
+            res = self._align(kj.points, lm.target, start, self._icp_fine if pyr is not None else self._gates_for(c))
+        except DegenerateInputError:
+            return Rejection.DEGENERATE
+        if res.degenerate:
+            return verdict or Rejection.DEGENERATE
+        sigma2_prior = max(cfg.icp_sigma_m**2, ref.sigma2 if ref is not None else 0.0)
+        f["chi2_ratio"] = res.residual / max(cfg.chi2_factor * (res.n_residuals - res.dof) * sigma2_prior, 1e-300)
+        if f["chi2_ratio"] > 1.0 and fail(Rejection.CHI2):
+            return Rejection.CHI2
+        T = res.transform
+        cov = self._covariance(res, keyframes[c.j])
+        if full:
+            f.update(T=T, fitness=res.fitness, rmse=res.rmse, sigma_theta=float(np.sqrt(res.covariance[-1, -1])),
+                     sigma_xy=float(np.sqrt(np.trace(res.covariance[:-1, :-1]))) if self.planar else np.nan)
+            if ref is not None:
+                f.update(fitness_ratio=res.fitness / max(ref.fitness, 1e-9), rmse_ratio=res.rmse / max(ref.rmse_m, 1e-9),
+                         ref_sigma_theta=float(np.sqrt(ref.covariance[-1, -1])))
+        if ref is not None and (res.fitness < cfg.min_relative_fitness * ref.fitness
+                                or res.rmse > cfg.max_relative_rmse * ref.rmse_m) and fail(Rejection.FIT):
+            return Rejection.FIT
+        if self.planar:
+            T = G.xytheta_to_matrix(G.matrix_to_xytheta(T))
+            f["free_space"] = free_space_violation_both(T, kj, keyframes[c.i])
+            if f["free_space"] > cfg.max_free_space_violation and fail(Rejection.FREE_SPACE):
+                return Rejection.FREE_SPACE
+            if full and pyr is not None:
+                f["unique_ratio"] = self._elsewhere_ratio(pts, pyr, c, T, 0.1)
+        if (verdict is None and c.vouched) or full:  # pending closures answer to their group instead
+            fb = self.backward(T, keyframes[c.i], ref)
+            if fb is not None:
+                e = G.se2_log(fb) if self.planar else G.se3_log(fb)
+                f["fb_dt"], f["fb_dth"] = float(np.linalg.norm(e[:-1] if self.planar else e[:3])), float(np.linalg.norm(e[2:] if self.planar else e[3:]))
+                f["fb_chi2"] = float(e @ np.linalg.solve(2.0 * cov, e))
+                if c.vouched and f["fb_chi2"] > self.gate and fail(Rejection.BACKWARD):
+                    return Rejection.BACKWARD
+        if verdict is not None:
+            return verdict
+        return Verified(c, T, cov, float(res.fitness), float(res.rmse), score, half)
+
+    def unique(self, v: Verified, keyframes: list[Keyframe], poses: Array, half: int) -> bool:
+        """Whether the verified alignment *v* is locally unique: no pose beyond a few cells and degrees of it,
+        within three floor windows of it (and within its search window), scores within ``ambiguity_ratio``
+        of its own score (2D with the correlative search; True
+        otherwise). Asked of every alignment the acceptance stage holds pending: accepted only in a group
+        against the estimate, it must not be one of several equally good poses (a corridor's slides, the
+        doors along it)."""
+        c = v.candidate
+        cfg = self.config
+        if not (self.planar and cfg.correlative):
+            return True
+        lm = self.maps.get(keyframes, poses, c.i, half)
+        resolution = cfg.global_resolution_m if c.source is Source.GLOBAL else cfg.correlative_resolution_m
+        pyr = self.maps.pyramid(lm, resolution, _PYRAMID_LEVELS)
+        pts = keyframes[c.j].points
+        pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= cfg.correlative_max_range_m]
+        try:
+            return self._elsewhere_ratio(pts, pyr, c, v.transform, cfg.ambiguity_ratio) < cfg.ambiguity_ratio
+        except DegenerateInputError:
+            return False
+
+    def backward(self, T: Array, ki: Keyframe, ref: Reference | None) -> Array | None:
+        """The alignment checked the other way round: keyframe *i*'s scan onto the new keyframe's own
+        preceding local map (its :class:`Reference`), from the pose *T* implies; returns the difference
+        ``T⁻¹ T'`` of the alignment *T'* that implies, or None without a reference (or when degenerate)."""
+        if ref is None:
+            return None
+        start = ref.pose @ G.inverse(T)  # map_sensor_T_i_sensor
+        try:
+            back = self._align(ki.points, ref.local_map.target, start, self._icp_fine)
+        except DegenerateInputError:
+            return None
+        T2 = G.inverse(back.transform) @ ref.pose
+        if self.planar:
+            T2 = G.xytheta_to_matrix(G.matrix_to_xytheta(T2))
+        return G.relative(T, T2)
+
+    def _gates_for(self, c: Candidate) -> IcpConfig:
+        """Without a correlative search (3D), a coarse first gate as wide as the window (at most 2 m)."""
+        if self.planar and self.config.correlative:
+            return self._icp
+        w = min(2.0, c.window.xy_m)
+        if w <= self._icp.gates[0]:
+            return self._icp
+        return self._icp.model_copy(update={"gates": (w,) + tuple(self._icp.gates)})
+
+    def _elsewhere_ratio(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array,
+                         floor: float) -> float:
+        """The best score in the window beyond a few cells and degrees of *T*, over *T*'s own score (0 when
+        nothing elsewhere reaches *floor* times it: the search prunes below that)."""
+        own = correlative.score_at(pts, pyr, T)
+        if own <= 0:
+            return np.inf
+        cfg = self.config
+        xy = min(c.window.xy_m, _UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
+        th = min(c.window.theta_rad, np.radians(_UNIQUE_WINDOW_FLOORS * cfg.window_floor_deg))
+        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T,
+                                           _UNIQUE_RADIUS_CELLS * pyr.resolution, _UNIQUE_RADIUS_RAD, floor * own)
+        return 0.0 if other is None else other / own
+
+    def _covariance(self, res: IcpResult, kj: Keyframe) -> Array:
+        """ICP covariance (sensor frame) at max(a-priori, a-posteriori) residual variance, plus the floor."""
+        c = self.config
+        factor = max(1.0, _sigma2(res) / c.icp_sigma_m**2)
+        n_t = 2 if self.planar else 3
+        floor = np.diag([c.covariance_floor_m**2] * n_t + [np.radians(c.covariance_floor_deg) ** 2] * (self.dof - n_t))
+        return res.covariance * factor + floor
+
+
+def _sigma2(res: IcpResult) -> float:
+    """A-posteriori residual variance Res / (n − dof) of an alignment (m²)."""
+    return float(res.residual / max(res.n_residuals - res.dof, 1))
+
+
+def free_space_violation(points_in_sensor: Array, keyframe: Keyframe, margin: float = 0.1,
+                         rel_margin: float = 0.02, min_inside: float = 0.0) -> float:
+    """Fraction of *points* (in *keyframe*'s sensor frame) lying in the free space its beams saw.
+
+    A point at bearing φ and range r violates the scan when the beam at φ returned beyond
+    ``r + margin + rel_margin·r``: the two scans cannot both be right — the negative-information
+    test of 2D scan matching (Olson, "Real-time correlative scan matching", ICRA 2009, §III-B).
+    A beam that returned nothing says nothing (dark or glancing surfaces drop out: half the beams
+    of a Hokuyo URG-04LX in a cluttered lab, a third of a SICK's outdoors), and points outside the
+    field of view are ignored. Returns 0 when no point falls on a returned beam, or fewer than
+    *min_inside* of the points (a fraction) do: too little overlap to say anything.
+    """
+    frame = keyframe.frame
+    ang, rng = frame.angles, frame.ranges
+    if ang is None or rng is None or len(ang) < 2:
+        return 0.0
+    order = np.argsort(ang)
+    a, r_beam, dropped = ang[order], rng[order], frame.no_return[order]
+    inc = float(np.median(np.diff(a)))
+    phi = np.arctan2(points_in_sensor[:, 1], points_in_sensor[:, 0])
+    r = np.hypot(points_in_sensor[:, 0], points_in_sensor[:, 1])
+    # The nearest beam by angle (a reader may have left out beams, so the angles need not be uniform).
+    hi_ = np.clip(np.searchsorted(a, phi), 1, len(a) - 1)
+    k = np.where(np.abs(phi - a[hi_ - 1]) <= np.abs(a[hi_] - phi), hi_ - 1, hi_)
+    inside = (np.abs(phi - a[k]) <= 0.5 * abs(inc) + 1e-9) & ~dropped[k]
+    n_in = int(np.count_nonzero(inside))
+    if n_in == 0 or n_in < min_inside * len(inside):
+        return 0.0
+    # The shortest return of the beam and its two neighbours: a wall seen at a glancing angle changes
+    # range quickly from beam to beam, and a point between two beams is not contradicted by one of them.
+    near = np.where(dropped, np.inf, r_beam)
+    lo, hi = np.clip(k - 1, 0, len(a) - 1), np.clip(k + 1, 0, len(a) - 1)
+    shortest = np.minimum(np.minimum(near[lo], near[k]), near[hi])
+    viol = inside & (shortest > r + margin + rel_margin * r)
+    return float(viol.sum() / n_in)
+
+
+def free_space_violation_both(i_T_j: Array, kj: Keyframe, ki: Keyframe) -> float:
+    """The larger of the two directions of :func:`free_space_violation` for the alignment ``i_sensor_T_j_sensor``."""
+    v1 = free_space_violation(G.transform_points(i_T_j, kj.frame.points), ki)
+    v2 = free_space_violation(G.transform_points(G.inverse(i_T_j), ki.frame.points), kj)
+    return max(v1, v2)

@@ -1,0 +1,75 @@
+"""Synthetic scenes for the loop-closure tests: small occupancy worlds and keyframes scanned in them.
+
+``room()`` is a 12 × 8 m room with a few boxes (distinctive everywhere); ``corridor()`` a 40 m long,
+2 m wide corridor without features (a scan matches anywhere along it). Scans come from the
+simulator's ray caster (``evaluation.sim.cast_rays``) with a 181-beam 180° laser and 1 cm noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evaluation.sim import LaserSpec, World, cast_rays
+from registration import geometry as G
+from registration.frame import Frame
+from registration.voxel import voxel_downsample
+from slam.keyframes import Keyframe
+
+RES = 0.05
+LASER = LaserSpec("test_laser", 181, -np.pi / 2, np.pi / 2, 0.05, 30.0, 10.0, 0.01)
+
+
+def _grid(width: float, height: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    margin = 1.0
+    nx, ny = int(round((width + 2 * margin) / RES)), int(round((height + 2 * margin) / RES))
+    xs = -margin + (np.arange(nx) + 0.5) * RES
+    ys = -margin + (np.arange(ny) + 0.5) * RES
+    return np.zeros((ny, nx), dtype=bool), xs, ys, np.array([-margin, -margin])
+
+
+def _box(occ: np.ndarray, xs: np.ndarray, ys: np.ndarray, x0: float, y0: float, x1: float, y1: float) -> None:
+    yy = (ys >= y0) & (ys <= y1)
+    xx = (xs >= x0) & (xs <= x1)
+    occ[np.ix_(yy, xx)] = True
+
+
+def _walls(occ: np.ndarray, xs: np.ndarray, ys: np.ndarray, width: float, height: float, t: float = 0.15) -> None:
+    _box(occ, xs, ys, -t, -t, width + t, 0.0)
+    _box(occ, xs, ys, -t, height, width + t, height + t)
+    _box(occ, xs, ys, -t, -t, 0.0, height + t)
+    _box(occ, xs, ys, width, -t, width + t, height + t)
+
+
+def room() -> World:
+    """A 12 × 8 m room with boxes of different sizes in it."""
+    occ, xs, ys, origin = _grid(12.0, 8.0)
+    _walls(occ, xs, ys, 12.0, 8.0)
+    for x0, y0, x1, y1 in ((2.0, 2.0, 2.6, 2.4), (6.0, 5.0, 6.3, 6.2), (9.0, 1.0, 10.2, 1.5), (4.0, 6.5, 4.4, 6.9),
+                           (10.5, 6.0, 11.0, 7.2), (7.5, 2.5, 7.9, 2.9)):
+        _box(occ, xs, ys, x0, y0, x1, y1)
+    return World(occ, np.ones_like(occ), RES, origin, "test_room")
+
+
+def corridor(length: float = 40.0) -> World:
+    """A featureless corridor, 2 m wide and *length* m long (its ends beyond the laser's reach)."""
+    occ, xs, ys, origin = _grid(length, 2.0)
+    _box(occ, xs, ys, -0.15, -0.15, length + 0.15, 0.0)
+    _box(occ, xs, ys, -0.15, 2.0, length + 0.15, 2.15)
+    return World(occ, np.ones_like(occ), RES, origin, "test_corridor")
+
+
+def keyframes(world: World, xyt: list[tuple[float, float, float]], seed: int = 0, laser: LaserSpec = LASER
+              ) -> list[Keyframe]:
+    """A keyframe per pose ``(x, y, θ)`` (base = sensor), scanned in *world*; ``odom_pose`` is the true pose."""
+    rng = np.random.default_rng(seed)
+    xyt = np.asarray(xyt, dtype=float)
+    ranges = cast_rays(world, xyt, laser, rng=rng, range_noise=laser.noise_std)
+    angles = laser.angles()
+    out = []
+    for k, (pose, r) in enumerate(zip(xyt, ranges)):
+        hit = np.isfinite(r)
+        pts = np.column_stack([r[hit] * np.cos(angles[hit]), r[hit] * np.sin(angles[hit])])
+        frame = Frame(float(k), pts, k, angles, np.where(hit, r, np.inf), ~hit, max_range=laser.range_max)
+        T = G.xytheta_to_matrix(*pose)
+        out.append(Keyframe(k, k, float(k), T, np.eye(4), voxel_downsample(pts, 0.02), frame))
+    return out

@@ -1,0 +1,289 @@
+"""Loop-closure stages on their own: candidate windows and sources, the acceptance stage's χ² gate and
+pairwise-consistent groups, the chain variance the groups use."""
+
+from __future__ import annotations
+
+import itertools
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from registration import geometry as G
+from slam.loops import candidates as C
+from slam.loops.accept import Acceptance, mahalanobis2, to_closure
+from slam.loops.config import LoopConfig
+from slam.loops.types import Candidate, LoopClosure, LoopStats, Rejection, Source, Verified, Window
+from slam.loops.uncertainty import NodeUncertainty, RelativeUncertainty
+
+
+def _keyframes(K: int, dim: int = 2):
+    return [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.zeros((0, dim)), odom_pose=np.eye(4))
+            for k in range(K)]
+
+
+# ---------------------------------------------------------------------------------------- windows
+
+
+def test_windows_span_three_sigma_per_axis_above_their_floors_and_vouch_only_at_the_floor():
+    cfg = LoopConfig()
+    sd_xy = np.array([0.01, 0.5, 2.0, 5.0])  # per axis
+    sd_th = np.radians([0.1, 1.0, 4.0, 90.0])
+    unc = NodeUncertainty(2 * sd_xy**2, sd_th**2)  # traces: 2 axes of position, 1 of heading
+    win_xy, win_th, sd = C.windows(unc, cfg, planar=True)
+    assert np.allclose(sd, sd_xy)
+    assert np.allclose(win_xy, np.maximum(cfg.window_sigmas * sd_xy, cfg.window_floor_m))
+    expect_th = np.minimum(np.maximum(cfg.window_sigmas * sd_th, np.radians(cfg.window_floor_deg)), np.pi)
+    assert np.allclose(win_th, expect_th)
+    assert win_th[3] == pytest.approx(np.pi)  # never beyond the whole circle
+    vouched = [win_xy[k] <= cfg.window_floor_m and win_th[k] <= np.radians(cfg.window_floor_deg) for k in range(4)]
+    assert vouched == [True, False, False, False]
+
+
+def _scene(K: int = 100):
+    """Keyframe 99 at the origin; 50–70 a recent, well-tied pass 0.3–1.3 m away; 5–10 an old pass
+    3 m away with σ 1.5 m per axis; 20 a place 30 m away with σ 15 m (beyond any spatial window)."""
+    pos = np.full((K, 2), 500.0)
+    pos[99] = 0.0
+    pos[50:71, 0] = np.linspace(0.3, 1.3, 21)
+    pos[50:71, 1] = 0.0
+    pos[5:11] = [0.0, 3.0]
+    pos[20] = [30.0, 0.0]
+    sd = np.full(K, 0.01)
+    sd[5:11] = 1.5
+    sd[20] = 15.0
+    poses = np.array([G.xytheta_to_matrix(x, y, 0.0) for x, y in pos])
+    return poses, NodeUncertainty(2 * sd**2, np.full(K, 1e-6))
+
+
+def test_spatial_candidates_take_the_nearest_and_keep_a_slot_for_an_uncertain_old_pass():
+    cfg = LoopConfig(near_candidates=3, uncertain_candidates=1)
+    poses, unc = _scene()
+    cands = C.spatial(_keyframes(100), poses, 99, unc, cfg, True, radius_m=2.0)
+    ids = [c.i for c in cands]
+    assert all(50 <= i <= 70 for i in ids[:3]) and ids[3] in range(5, 11)
+    assert all(abs(a - b) > cfg.local_map_keyframes for a, b in itertools.combinations(ids, 2))  # maps spread
+    old = cands[3]
+    assert not old.vouched and old.window.xy_m == pytest.approx(cfg.window_sigmas * 1.5)
+    assert all(c.vouched and c.window.xy_m == cfg.window_floor_m for c in cands[:3])
+    assert 20 not in ids  # its window would exceed max_window_m: the global search's
+    # Without the uncertain slot the old pass is crowded out by the recent one.
+    assert all(50 <= c.i <= 70 for c in C.spatial(_keyframes(100), poses, 99, unc, cfg.model_copy(
+        update={"uncertain_candidates": 0}), True, radius_m=2.0))
+
+
+def test_global_places_are_those_within_reach_whose_window_no_spatial_search_covers():
+    cfg = LoopConfig()
+    poses, unc = _scene()
+    places = C.global_places(poses, 99, unc, cfg, True, radius_m=2.0, spacing=10)
+    assert places.tolist() == [20]  # within 2 m + 3·15 m, window 45 m > max_window_m
+    assert C.global_places(poses, 10, unc, cfg, True, 2.0, 10).size == 0  # nothing older than the exclusion window
+
+
+def test_a_global_candidate_searches_the_whole_local_map_and_every_heading():
+    cfg = LoopConfig()
+    poses, unc = _scene()
+    lo, hi = np.array([-4.0, -1.0]), np.array([6.0, 3.0])
+    c = C.global_candidate(_keyframes(100), poses, 20, 99, unc, cfg, (lo, hi))
+    assert c.source is Source.GLOBAL and not c.vouched
+    assert c.window.xy_m == pytest.approx(5.0) and c.window.theta_rad == pytest.approx(np.pi)
+    assert np.allclose(G.matrix_to_xytheta(c.guess)[:2], [1.0, 1.0])
+
+
+def test_the_overlap_radius_is_the_upper_quartile_of_the_scan_ranges_unless_configured():
+    r = np.linspace(1.0, 9.0, 81)
+    kf = SimpleNamespace(points=np.column_stack([r, np.zeros_like(r)]))
+    assert C.overlap_radius(kf, LoopConfig()) == pytest.approx(np.percentile(r, 75))
+    assert C.overlap_radius(kf, LoopConfig(overlap_radius_m=2.5)) == 2.5
+
+
+# ---------------------------------------------------------------------------------------- chain variance
+
+
+def test_chain_variance_fuses_parallel_steps_and_carries_heading_over_the_lever_arm():
+    """Steps 0→1→2→3 each with a registration edge (vt 4e-4, vr 1e-4) and a wheel edge (vt 4e-4, vr 3e-4):
+    fused per block by information, vt = 2e-4, vr = 7.5e-5; along the chain the rotation variance of
+    each step is carried to the end keyframe over its lever arm."""
+    ru = RelativeUncertainty(planar=True)
+    for k in range(1, 4):
+        ru.add_edge(k - 1, k, np.diag([2e-4, 2e-4, 1e-4]))
+        ru.add_edge(k - 1, k, np.diag([2e-4, 2e-4, 3e-4]))
+    pos = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    vt, vr = ru.chain_variance(0, 3, pos)
+    fused_r = 1e-4 * 3e-4 / (1e-4 + 3e-4)
+    lever2 = np.array([2.5, 1.5, 0.5]) ** 2  # step centres 0.5, 1.5, 2.5 m from keyframe 3
+    assert vr == pytest.approx(3 * fused_r)
+    assert vt == pytest.approx(3 * 2e-4 + fused_r * lever2.sum())
+    assert ru.chain_variance(3, 0, pos)[1] == pytest.approx(vr)  # order of the ends does not matter
+    assert ru.chain_variance(2, 2, pos) == (0.0, 0.0)
+
+
+def test_chain_variance_without_a_step_edge_is_the_limit():
+    ru = RelativeUncertainty(planar=True, limit_m2=99.0)
+    ru.add_edge(0, 1, np.eye(3) * 1e-4)
+    ru.add_edge(2, 3, np.eye(3) * 1e-4)
+    assert ru.chain_variance(0, 3, np.zeros((4, 2))) == (99.0, 99.0)
+
+
+# ---------------------------------------------------------------------------------------- acceptance
+
+
+def _verified(i: int, j: int, T: np.ndarray, est: np.ndarray | None, est_cov: np.ndarray | None, vouched: bool,
+              cov: np.ndarray | None = None, source: Source = Source.SPATIAL) -> Verified:
+    cand = Candidate(i, j, source, T if est is None else est, Window(1.0, 0.1),
+                     None if est is None else (est, est_cov), vouched)
+    return Verified(cand, T, np.diag([1e-4, 1e-4, 1e-5]) if cov is None else cov, 0.9, 0.02, 0.8, 3)
+
+
+def _acceptance(cfg: LoopConfig | None = None, K: int = 60, step_cov: float = 1e-6):
+    ru = RelativeUncertainty(planar=True)
+    for k in range(1, K):
+        ru.add_edge(k - 1, k, np.eye(3) * step_cov)
+    return Acceptance(cfg or LoopConfig(), True, ru, LoopStats())
+
+
+def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
+    """The gate is the consistency_probability quantile of χ²(3) on the Mahalanobis distance under the sum
+    of both covariances: an offset just inside is accepted alone, just outside held pending."""
+    cfg = LoopConfig()
+    gate = chi2.ppf(cfg.consistency_probability, 3)
+    est = G.xytheta_to_matrix(2.0, 0.0, 0.0)
+    est_cov = np.diag([0.01, 0.01, 1e-4])
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    s = np.sqrt(0.01 + 1e-4)
+    for factor, accepted in ((0.98, True), (1.02, False)):
+        T = est @ G.se2_exp([factor * s * np.sqrt(gate), 0.0, 0.0])
+        acc = _acceptance(cfg)
+        lc = acc.consider(_verified(0, 30, T, est, est_cov, True, cov), _keyframes(60), lambda v: True)
+        assert (lc is not None) == accepted
+        assert acc.stats.accepted == int(accepted) and len(acc.pending) == int(not accepted)
+        assert mahalanobis2(est, est_cov, T, cov, True) == pytest.approx(factor**2 * gate, rel=1e-6)
+
+
+def test_an_alignment_held_pending_must_be_unique_and_one_the_estimate_vouches_for_is_not_asked():
+    est = G.xytheta_to_matrix(2.0, 0.0, 0.0)
+    asked: list[int] = []
+
+    def unique(v):
+        asked.append(v.candidate.j)
+        return False
+
+    acc = _acceptance()
+    acc.consider(_verified(0, 30, est, est, np.eye(3) * 1e-2, True), _keyframes(60), unique)  # vouched, consistent
+    acc.consider(_verified(0, 31, est, None, None, False), _keyframes(60), unique)  # unvouched: ambiguous → dropped
+    assert asked == [31] and acc.pending == [] and acc.stats.rejections[Rejection.AMBIGUOUS] == 1
+
+
+def _return(truth: np.ndarray, correction: np.ndarray, rng, offsets=None):
+    """Closures of keyframes 30–34 with places 0–4 (the same corridor stretch), measured from *truth*
+    (1 cm, 0.1° noise, plus per-closure *offsets*), while the estimate has the new keyframes moved by
+    *correction*."""
+    est = truth.copy()
+    est[30:35] = correction @ truth[30:35]
+    out = []
+    for n, (i, j) in enumerate(zip(range(5), range(30, 35))):
+        noise = G.xytheta_to_matrix(*rng.normal(0, [0.01, 0.01, np.radians(0.1)]))
+        T = G.relative(truth[i], truth[j]) @ noise
+        if offsets is not None:
+            T = T @ offsets[n]
+        out.append(_verified(i, j, T, None, None, False))
+    return est, out
+
+
+def _corridor_truth(K: int = 60) -> np.ndarray:
+    """0–4 and 30–34 along one corridor (0.5 m apart); 5–29 a 63 m loop round a 10 m circle in between."""
+    truth = np.array([G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(K)])
+    a = np.linspace(-np.pi / 2, 1.5 * np.pi, 27)[1:-1]
+    truth[5:30] = [G.xytheta_to_matrix(2.5 + 10 * np.cos(t), 10 + 10 * np.sin(t), t + np.pi / 2) for t in a]
+    truth[30:35] = [G.xytheta_to_matrix(0.5 * (k - 30) + 0.2, 0.3, 0.05) for k in range(30, 35)]
+    return truth
+
+
+def test_agreeing_pending_closures_are_accepted_as_a_group_once_their_window_has_passed():
+    """After a 2 m / 12° drift none of the return's closures can be vouched for; the five agree pairwise
+    (their cycles through the estimate's short stretches close), so they are accepted together when the
+    group window after the first has passed — and not before."""
+    rng = np.random.default_rng(4)
+    truth = _corridor_truth()
+    est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), rng)
+    cfg = LoopConfig()
+    acc = _acceptance(cfg, step_cov=1e-5)
+    for v in verified:
+        assert acc.consider(v, _keyframes(60), lambda v: True) is None
+    W = cfg.group_window_keyframes
+    assert acc.decide(30 + W - 2, est) == []  # the window after keyframe 30 is not complete
+    group = acc.decide(30 + W - 1, est)
+    assert sorted(lc.j for lc in group) == [30, 31, 32, 33, 34] and all(lc.group for lc in group)
+    assert acc.pending == [] and acc.stats.accepted_as_group == 5
+    assert acc.relocalises(group, est)  # 2 m off: beyond what a kernel lets a closure pull
+
+
+def test_closures_that_disagree_form_no_group_and_expire():
+    """Five closures, each slid along the corridor by its own 0.5 m: no three agree."""
+    rng = np.random.default_rng(5)
+    truth = _corridor_truth()
+    offsets = [G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(5)]
+    est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), rng, offsets)
+    acc = _acceptance(step_cov=1e-5)
+    for v in verified:
+        acc.consider(v, _keyframes(60), lambda v: True)
+    assert acc.decide(30 + LoopConfig().group_window_keyframes - 1, est) == []
+    assert acc.stats.pending_expired == 5 and acc.pending == []
+
+
+def test_a_group_contradicted_by_a_closure_accepted_alone_nearby_is_refused():
+    """The group says the new keyframes are 2 m along; keyframe 31 was meanwhile closed on its own with place
+    1 where the estimate had it: the estimate was right there, the group is an alias."""
+    rng = np.random.default_rng(6)
+    truth = _corridor_truth()
+    alias = G.xytheta_to_matrix(2.0, 0.0, 0.0)
+    est = truth.copy()
+    _, verified = _return(truth, np.eye(4), rng, [alias] * 5)
+    acc = _acceptance(step_cov=1e-5)
+    alone = _verified(1, 31, G.relative(est[1], est[31]), G.relative(est[1], est[31]), np.eye(3) * 1e-2, True)
+    assert acc.consider(alone, _keyframes(60), lambda v: True) is not None
+    for v in verified:
+        acc.consider(v, _keyframes(60), lambda v: True)
+    assert acc.decide(30 + LoopConfig().group_window_keyframes - 1, est) == []
+    assert acc.stats.groups_contradicted == 1
+
+
+def test_the_maximum_consistent_set_is_the_maximum_clique():
+    """On random consistency graphs the exact search finds a clique as large as brute force does."""
+    rng = np.random.default_rng(0)
+    acc = _acceptance()
+    for trial in range(30):
+        n = int(rng.integers(3, 10))
+        adj = rng.random((n, n)) < 0.5
+        adj = np.triu(adj, 1)
+        adj = adj | adj.T
+        closures = [LoopClosure(0, 100 + k, np.eye(4), np.eye(3), 1.0, 0.0, "spatial") for k in range(n)]
+        index = {id(c): k for k, c in enumerate(closures)}
+        acc.consistent = lambda a, b, P, _adj=adj, _ix=index: bool(_adj[_ix[id(a)], _ix[id(b)]])  # type: ignore[method-assign]
+        got = acc._max_consistent_set(closures, np.zeros((1, 4, 4)))
+        best = max(len(s) for r in range(1, n + 1) for s in itertools.combinations(range(n), r)
+                   if all(adj[a, b] for a, b in itertools.combinations(s, 2)))
+        members = [index[id(c)] for c in got]
+        assert len(got) == best
+        assert all(adj[a, b] for a, b in itertools.combinations(members, 2))
+
+
+def test_to_closure_carries_the_alignment_and_its_covariance_through_the_sensor_mounts():
+    """i_base_T_j_base = B_i T B_j⁻¹, and the covariance of a right perturbation of T maps by Ad(B_j)."""
+    Bi, Bj = G.xytheta_to_matrix(0.3, 0.0, 0.1), G.xytheta_to_matrix(0.3, 0.0, 0.1)
+    kfs = _keyframes(40)
+    kfs[0].base_T_sensor, kfs[30].base_T_sensor = Bi, Bj
+    T = G.xytheta_to_matrix(1.0, 2.0, 0.5)
+    cov = np.diag([1e-3, 2e-3, 1e-4])
+    lc = to_closure(_verified(0, 30, T, None, None, False, cov), kfs, True)
+    assert np.allclose(lc.measurement, Bi @ T @ G.inverse(Bj))
+    A = G.adjoint(Bj, planar=True)
+    assert np.allclose(lc.covariance, A @ cov @ A.T)
+    # Monte Carlo: perturbing T on the right by δ ~ N(0, cov) perturbs the base closure by Ad(B_j) δ, so its
+    # normalised squared error under lc.covariance averages 3 (standard error of the mean √(6/n) = 0.04).
+    rng = np.random.default_rng(1)
+    d = rng.multivariate_normal(np.zeros(3), cov, 4000)
+    e = np.array([G.se2_log(G.relative(lc.measurement, Bi @ T @ G.se2_exp(x) @ G.inverse(Bj))) for x in d])
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(lc.covariance, e.T).T)
+    assert nees.mean() == pytest.approx(3.0, abs=0.15)
