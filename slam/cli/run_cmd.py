@@ -124,6 +124,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
         "loop_closures": _loop_closures(result),
         "loop_stats": result.loop_stats,
         "odometry_stats": result.odometry_stats,
+        "self_check": result.self_check,
         "dimension": 2 if result.planar else 3,
         "stage_times_s": result.stage_times_s,
         "map_scans_fused": result.map_scans_fused,
@@ -230,6 +231,11 @@ def run(
     typer.echo(f"scans: {s['scans']}")
     typer.echo(f"keyframes: {s['keyframes']}")
     typer.echo(f"loop_closures: {s['loop_closures']}")
+    sc = s.get("self_check") or {}
+    if sc:
+        where = "; ".join(f"keyframes {w['first_keyframe']}–{w['last_keyframe']} (t {w['first_stamp']:.1f}–{w['last_stamp']:.1f} s)"
+                          for w in sc.get("where", [])[:3])
+        typer.echo(f"self_check: {sc['verdict']}" + (f" ({where})" if sc["verdict"] != "consistent" and where else ""))
     typer.echo(f"wall_time_s: {s['wall_time_s']:.2f}")
     for line in s.get("evaluation", []):
         typer.echo(line)

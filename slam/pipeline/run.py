@@ -5,7 +5,8 @@
 2. keyframes and odometry edges with the compounded registration covariance;
 3. loop closures for every keyframe, verified by ICP (χ², fitness, consistency);
 4. iSAM2 after every keyframe (or periodic chordal batch solves), a final batch solve;
-5. a pose for every scan, the occupancy map from the keyframe scans, all outputs.
+5. the self-check of the result against its own scans (:mod:`slam.pipeline.self_check`);
+6. a pose for every scan, the occupancy map from the keyframe scans, all outputs.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from .config import SlamConfig
 from .frontend import Keyframe
 from slam.loops import LoopClosure
 from .online_graph import OnlineGraph
+from .self_check import self_check
 from .trajectory import interpolate_scan_poses
 
 Array = NDArray[np.float64]
@@ -61,6 +63,7 @@ class SlamResult:
     errors: list[str] = field(default_factory=list)
     odometry_stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges left out
     peak_memory_mb: dict[str, float] = field(default_factory=dict)  # of the stage processes ("front_end", "mapping"), when they ran as such
+    self_check: dict = field(default_factory=dict)  # slam.pipeline.self_check: does the result contradict its own data?
 
 
 def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
@@ -159,6 +162,9 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
         t4 = time.perf_counter()
         kf_poses = graph.finish()
         times["final_solve_s"] = time.perf_counter() - t4
+        t7 = time.perf_counter()
+        check = self_check(keyframes, kf_poses, graph.loops, planar).as_dict()
+        times["self_check_s"] = time.perf_counter() - t7
         t6 = time.perf_counter()
         occ = mapper.finish(keyframes, kf_poses)
         if isinstance(mapper, MappingProcess):
@@ -183,4 +189,5 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
     if isinstance(mapper, MappingProcess):
         peaks["mapping"] = mapper.peak_memory_mb
     return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, graph.backend, graph.loops, stats, times, occ,
-                      map_scans_fused=mapper.scans_fused, odometry_stats=summary.stats, peak_memory_mb=peaks)
+                      map_scans_fused=mapper.scans_fused, odometry_stats=summary.stats, peak_memory_mb=peaks,
+                      self_check=check)
