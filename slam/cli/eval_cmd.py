@@ -192,6 +192,62 @@ def relations_cmd(
     _save_json(json_out, {**out, "dataset": ds, "published": PUBLISHED.get(ds) if ds else None})
 
 
+def nees_cmd(
+    run: Path = typer.Argument(..., help="A slam run folder (graph.g2o, node_stamps.txt, odometry.tum)."),
+    relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
+    stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
+    json_out: Path | None = _JSON,
+) -> None:
+    """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations, per chain
+    length (1 = consistent; above, overconfident; below, conservative)."""
+    _check_json(json_out)
+    import numpy as np
+
+    from evaluation.nees import bin_by_length, chain_nees, fuse_steps
+    from evaluation.relations import read_relations
+    from evaluation.trajectory import nearest_indices
+    from registration.errors import InputFileError
+    from slam.graph import read_graph
+    from slam.graph.posegraph import KINDS
+    from slam.trajectory_io import read_node_stamps, read_trajectory
+
+    graph = read_graph(run / "graph.g2o")
+    if graph.dim != 2:
+        raise InputFileError(run / "graph.g2o", None, "is not a planar graph; the NEES table is for 2D runs")
+    a = graph.edge_arrays()
+    odo = np.flatnonzero(a.kinds == KINDS.index("odometry"))
+    edges = [(int(a.ii[e]), int(a.jj[e]), a.measurements[e], np.linalg.inv(a.information[e])) for e in odo]
+    try:
+        mu, cov = fuse_steps(graph.num_nodes, edges)
+    except ValueError as err:
+        raise InputFileError(run / "graph.g2o", None, str(err)) from None
+    node_t = read_node_stamps(run / "node_stamps.txt", graph.node_ids)
+    scans = read_trajectory(run / "odometry.tum")
+    kf_scan = np.searchsorted(node_t, scans.stamps + stamp_tol, side="right") - 1
+    ia, sa = nearest_indices(node_t, scans.stamps, stamp_tol)
+    if len(ia) != len(node_t):
+        raise InputFileError(run / "node_stamps.txt", None, "a keyframe stamp has no scan in odometry.tum")
+    kf_odom = scans.poses[sa]
+    rel = read_relations(relations)
+    i1, s1 = nearest_indices(rel.t1, scans.stamps, stamp_tol)
+    i2, s2 = nearest_indices(rel.t2, scans.stamps, stamp_tol)
+    both = np.intersect1d(i1, i2)
+    m1, m2 = dict(zip(i1, s1)), dict(zip(i2, s2))
+    keep = [r for r in both if kf_scan[m1[r]] >= 0 and kf_scan[m2[r]] >= 0]
+    if not keep:
+        raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
+    pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
+    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep])
+    bins = bin_by_length(rows)
+    typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)})")
+    typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
+    for b in bins:
+        span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
+        typer.echo(f"{span:>12} {b.n:>6} {b.nees_mean:>9.3f} {b.nees_median:>8.3f} {b.rms_translation_m:>8.4f} "
+                   f"{b.sigma_translation_m:>8.4f} {b.rms_rotation_deg:>8.3f} {b.sigma_rotation_deg:>8.3f}")
+    _save_json(json_out, {"relations": len(rows), "bins": [b.as_dict() for b in bins]})
+
+
 def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:
     """True poses of the graph nodes: by stamp (``--node-stamps`` file of 'id stamp' or one stamp per node)
     or, without it, node id = row of the ground-truth trajectory."""
@@ -310,5 +366,6 @@ def register(app: typer.Typer, eval_app: typer.Typer) -> None:
     eval_app.command("rpe")(rpe_cmd)
     eval_app.command("relations")(relations_cmd)
     eval_app.command("loops")(loops_cmd)
+    eval_app.command("nees")(nees_cmd)
     eval_app.command("crosscheck")(crosscheck_cmd)
     eval_app.command("report")(report_cmd)

@@ -1,0 +1,150 @@
+"""Consistency of the front end's relative-pose covariance: NEES along keyframe chains against ground truth.
+
+The front end gives, between consecutive keyframes, a registration edge and (with wheel odometry) a
+wheel edge, each with a covariance. Without loop closures the graph's estimate of keyframe *b*
+relative to keyframe *a* is the chain of those steps (parallel edges of a step fused by adding their
+information), and its covariance is the chain's compounded covariance (first-order propagation,
+Barfoot, *State Estimation for Robotics*, §7.3.3). A ground-truth relative pose δ* (a Kümmerle et al.
+2009 relation) gives the error ``e = Log(δ*⁻¹ · estimate)`` and the normalised estimation error
+squared ``NEES = eᵀ Σ⁻¹ e`` (Bar-Shalom, Li & Kirubarajan, *Estimation with Applications to Tracking
+and Navigation*, 2001, §5.4.2). For a consistent covariance NEES/dof averages 1 at every chain length:
+above, the covariance is overconfident (search windows too small, closures over-trusted); below, it is
+conservative.
+
+Relations between scans that are not keyframes are carried to the keyframes before them with the
+front end's own per-scan odometry (its error over those few scans is not in the chain's covariance).
+
+Planar (SE(2)) chains only; poses are 4×4, covariances in the tangent order ``(x, y, θ)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import geometry as G
+
+Array = NDArray[np.float64]
+
+#: Chain-length bins (keyframes): [1], [2], [3, 5], [6, 10], [11, 30], [31, 100], [101, 300], [301, 1000], [1001, ∞)
+BIN_EDGES = (1, 2, 3, 6, 11, 31, 101, 301, 1001, 10**9)
+
+
+@dataclass(frozen=True)
+class NeesBin:
+    """Relations whose ends are ``lo`` … ``hi`` keyframes apart: how many, NEES/dof (mean, median), and
+    the RMS error beside the mean predicted standard deviation (translation m, rotation deg)."""
+
+    lo: int
+    hi: int
+    n: int
+    nees_mean: float
+    nees_median: float
+    rms_translation_m: float
+    sigma_translation_m: float
+    rms_rotation_deg: float
+    sigma_rotation_deg: float
+
+    def as_dict(self) -> dict:
+        return dict(vars(self))
+
+
+def fuse_steps(K: int, edges: list[tuple[int, int, Array, Array]]) -> tuple[Array, Array]:
+    """Per step k (keyframe k − 1 → k, k ≥ 1) the fused mean ``(K, 4, 4)`` and covariance ``(K, 3, 3)`` of the
+    edges ``(i, j, measurement i_T_j, covariance)`` between consecutive keyframes: information added on
+    the tangent space of the step's first edge (Gauss–Newton's first step, exact to first order).
+    Raises ValueError when a step has no edge."""
+    by_step: dict[int, list[tuple[Array, Array]]] = {}
+    for i, j, T, cov in edges:
+        if j == i + 1:
+            by_step.setdefault(j, []).append((np.asarray(T, float), np.asarray(cov, float)))
+        elif i == j + 1:
+            by_step.setdefault(i, []).append((G.inverse(T), _inverse_covariance(T, cov)))
+    mu = np.tile(np.eye(4), (K, 1, 1))
+    cov = np.zeros((K, 3, 3))
+    for k in range(1, K):
+        if k not in by_step:
+            raise ValueError(f"no edge between keyframes {k - 1} and {k}")
+        base, _ = by_step[k][0]
+        info = np.zeros((3, 3))
+        vec = np.zeros(3)
+        for T, C in by_step[k]:
+            W = np.linalg.inv(C)
+            info += W
+            vec += W @ G.se2_log(G.relative(base, T))
+        S = np.linalg.inv(info)
+        mu[k] = base @ G.se2_exp(S @ vec)
+        cov[k] = S
+    return mu, cov
+
+
+def _inverse_covariance(T: Array, cov: Array) -> Array:
+    """Covariance of ``T⁻¹`` with right perturbations: Ad(T) Σ Ad(T)ᵀ."""
+    A = G.adjoint(T, planar=True)
+    return A @ cov @ A.T
+
+
+class Chain:
+    """Prefix products and compounded covariances of a keyframe chain, for any pair in O(1).
+
+    With right perturbations, ``T_ab = Π_{k=a+1..b} μ_k Exp(ξ_k)`` gives ``Σ_ab = Ad(C_b)⁻¹ (S_b − S_a) Ad(C_b)⁻ᵀ``
+    where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``."""
+
+    def __init__(self, mu: Array, cov: Array) -> None:
+        K = len(mu)
+        self.C = np.zeros((K, 4, 4))
+        self.C[0] = np.eye(4)
+        self.S = np.zeros((K, 3, 3))
+        for k in range(1, K):
+            self.C[k] = self.C[k - 1] @ mu[k]
+            A = G.adjoint(self.C[k], planar=True)
+            self.S[k] = self.S[k - 1] + A @ cov[k] @ A.T
+
+    def relative(self, a: int, b: int) -> tuple[Array, Array]:
+        """``a_T_b`` along the chain and its covariance (a ≤ b)."""
+        Ainv = np.linalg.inv(G.adjoint(self.C[b], planar=True))
+        return G.relative(self.C[a], self.C[b]), Ainv @ (self.S[b] - self.S[a]) @ Ainv.T
+
+
+def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
+               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array) -> Array:
+    """Per relation ``(scan a, scan b)`` with true ``a_T_b`` *truth*: rows (chain length in keyframes, NEES/dof,
+    translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad).
+
+    *mu*, *cov*: :func:`fuse_steps`; *keyframe_of_scan*: the last keyframe at or before each scan;
+    *scan_odometry* ``(N, 4, 4)`` and *keyframe_odometry* ``(K, 4, 4)``: the front end's odometry poses,
+    which carry each scan to its keyframe. Relations within one keyframe interval are left out."""
+    chain = Chain(mu, cov)
+    rows = []
+    for (sa, sb), delta in zip(pairs, truth):
+        if sa > sb:
+            sa, sb, delta = sb, sa, G.inverse(delta)
+        ka, kb = int(keyframe_of_scan[sa]), int(keyframe_of_scan[sb])
+        if kb <= ka:
+            continue
+        A = G.relative(keyframe_odometry[ka], scan_odometry[sa])
+        B = G.relative(keyframe_odometry[kb], scan_odometry[sb])
+        T, S = chain.relative(ka, kb)
+        est = G.inverse(A) @ T @ B
+        AdB = G.adjoint(G.inverse(B), planar=True)
+        S = AdB @ S @ AdB.T
+        e = G.se2_log(G.relative(delta, est))
+        rows.append((kb - ka, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
+                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2]))))
+    return np.array(rows, dtype=float).reshape(-1, 6)
+
+
+def bin_by_length(rows: Array, edges: tuple[int, ...] = BIN_EDGES) -> list[NeesBin]:
+    """:class:`NeesBin` per chain-length bin of :func:`chain_nees` rows (empty bins left out)."""
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (rows[:, 0] >= lo) & (rows[:, 0] < hi)
+        if not m.any():
+            continue
+        r = rows[m]
+        out.append(NeesBin(lo, hi - 1, int(m.sum()), float(r[:, 1].mean()), float(np.median(r[:, 1])),
+                           float(np.sqrt(np.mean(r[:, 2] ** 2))), float(np.mean(r[:, 4])),
+                           float(np.degrees(np.sqrt(np.mean(r[:, 3] ** 2)))), float(np.degrees(np.mean(r[:, 5])))))
+    return out

@@ -1,0 +1,101 @@
+"""The run's self-check (no ground truth) and the NEES of the front end's chain covariance (ground truth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps
+from registration import geometry as G
+from slam.loops.types import LoopClosure
+from slam.pipeline.self_check import SelfCheckConfig, self_check
+
+from tests.loop_scenes import keyframes, room
+
+
+def _two_passes():
+    """Two passes along the room's length, the second 12 keyframes after the first ends (different passes)."""
+    first = [(x, 3.0, 0.0) for x in np.linspace(1.5, 10.5, 19)]
+    away = [(10.5, 3.0 + 0.3 * k, np.pi / 2) for k in range(1, 13)]
+    second = [(x, 3.2, np.pi) for x in np.linspace(10.5, 1.5, 19)]
+    kfs = keyframes(room(), first + away + second, seed=7)
+    return kfs, np.array([kf.odom_pose for kf in kfs])
+
+
+def test_the_true_map_is_consistent_and_a_pass_moved_one_metre_is_suspect_where_it_was_moved():
+    kfs, poses = _two_passes()
+    cfg = SelfCheckConfig(exclude_recent_keyframes=5)
+    good = self_check(kfs, poses, [], True, cfg)
+    assert good.verdict == "consistent" and good.keyframes_checked > 20 and good.keyframes_contradicting == 0
+    bad_poses = poses.copy()
+    bad_poses[31:] = G.xytheta_to_matrix(0.0, 1.0, 0.0) @ poses[31:]  # the second pass 1 m across the room
+    bad = self_check(kfs, bad_poses, [], True, cfg)
+    assert bad.verdict == "suspect" and bad.keyframes_contradicting > 0.1 * bad.keyframes_checked
+    flagged = {k for w in bad.where for k in range(w["first_keyframe"], w["last_keyframe"] + 1)}
+    assert flagged & set(range(31, len(kfs)))
+
+
+def test_closures_the_solution_violates_are_counted_and_make_the_run_suspect():
+    kfs, poses = _two_passes()
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    good = [LoopClosure(k, 49 - k, G.relative(poses[k], poses[49 - k]), cov, 1.0, 0.0, "spatial") for k in range(10)]
+    sc = self_check(kfs, poses, good, True, SelfCheckConfig(exclude_recent_keyframes=5))
+    assert sc.closures == 10 and sc.closures_violated == 0 and sc.verdict == "consistent"
+    off = G.xytheta_to_matrix(0.5, 0.0, np.radians(2.0))
+    wrong = [LoopClosure(lc.i, lc.j, lc.measurement @ off, cov, 1.0, 0.0, "spatial") for lc in good[:3]]
+    sc = self_check(kfs, poses, good + wrong, True, SelfCheckConfig(exclude_recent_keyframes=5))
+    assert sc.closures_violated == 3 and sc.closures_violated_20cm_1deg == 3 and sc.verdict == "suspect"
+
+
+def _noisy_chain(rng, K: int, cov: np.ndarray):
+    """True poses along a wandering path and one odometry edge per step, measured with noise ~ N(0, cov)."""
+    steps = [G.xytheta_to_matrix(0.25, 0.0, t) for t in rng.normal(0, 0.1, K)]
+    truth = [np.eye(4)]
+    for s in steps[1:]:
+        truth.append(truth[-1] @ s)
+    truth = np.array(truth)
+    edges = [(k - 1, k, G.relative(truth[k - 1], truth[k]) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), cov)), cov)
+             for k in range(1, K)]
+    return truth, edges
+
+
+@pytest.mark.parametrize("scale, expect", [(1.0, 1.0), (4.0, 0.25)])
+def test_nees_of_a_chain_with_the_right_covariance_is_one_per_dof_at_every_length(scale, expect):
+    """Edges drawn with covariance Σ and evaluated with scale·Σ: NEES/dof averages 1/scale in every bin
+    (Bar-Shalom et al. 2001 §5.4.2), within the sampling error of each bin."""
+    rng = np.random.default_rng(11)
+    K = 600
+    cov = np.diag([0.01**2, 0.005**2, np.radians(0.3) ** 2])
+    truth, edges = _noisy_chain(rng, K, cov)
+    mu, C = fuse_steps(K, [(i, j, T, scale * S) for i, j, T, S in edges])
+    pairs = np.array([(a, a + L) for L in (1, 2, 4, 8, 20, 60, 200, 500) for a in range(0, K - L, max(1, L // 4))])
+    scan_kf = np.arange(K)
+    rows = chain_nees(mu, C, scan_kf, truth, truth, pairs, G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]]))
+    bins = bin_by_length(rows)
+    assert [b.lo for b in bins] == [lo for lo in BIN_EDGES[:-1] if lo <= 500][: len(bins)]
+    for b in bins:
+        # The mean of n samples of χ²(3)/3 has standard deviation √(2/(3n)) (more with overlapping pairs).
+        assert b.nees_mean == pytest.approx(expect, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
+
+
+def test_fused_parallel_edges_add_their_information_and_the_chain_compounds_them():
+    rng = np.random.default_rng(3)
+    T = G.xytheta_to_matrix(0.3, 0.1, 0.2)
+    A, B = np.diag([1e-3, 2e-3, 1e-4]), np.diag([3e-3, 1e-3, 2e-4])
+    mu, C = fuse_steps(2, [(0, 1, T, A), (0, 1, T, B)])
+    assert np.allclose(mu[1], T) and np.allclose(C[1], np.linalg.inv(np.linalg.inv(A) + np.linalg.inv(B)))
+    # An edge given backwards (1 → 0) is the same step.
+    mu2, C2 = fuse_steps(2, [(1, 0, G.inverse(T), A @ np.eye(3))])
+    assert np.allclose(mu2[1], T, atol=1e-12)
+    # Chain.relative equals sequential compounding (Barfoot eq. 7.262).
+    steps = [G.xytheta_to_matrix(*rng.normal(0, [0.5, 0.5, 0.3])) for _ in range(6)]
+    covs = [np.diag(rng.uniform(1e-4, 1e-3, 3)) for _ in range(6)]
+    ch = Chain(np.array([np.eye(4)] + steps[:5]), np.array([np.zeros((3, 3))] + covs[:5]))
+    Tc, Sc = ch.relative(1, 5)
+    T_seq, S_seq = np.eye(4), np.zeros((3, 3))
+    for k in range(1, 5):
+        S_seq = G.compound_covariance(S_seq, steps[k], covs[k])
+        T_seq = T_seq @ steps[k]
+    assert np.allclose(Tc, T_seq) and np.allclose(Sc, S_seq)
+    with pytest.raises(ValueError, match="no edge between keyframes 1 and 2"):
+        fuse_steps(3, [(0, 1, T, A)])
