@@ -60,7 +60,7 @@ def _scene(K: int = 100):
 def test_spatial_candidates_take_the_nearest_and_keep_a_slot_for_an_uncertain_old_pass():
     cfg = LoopConfig(near_candidates=3, uncertain_candidates=1)
     poses, unc = _scene()
-    cands = C.spatial(_keyframes(100), poses, 99, unc, cfg, True, radius_m=2.0)
+    cands = C.spatial(_keyframes(100), poses, 99, unc, cfg, True, radius_m=2.0, path_m=np.arange(100.0))
     ids = [c.i for c in cands]
     assert all(50 <= i <= 70 for i in ids[:3]) and ids[3] in range(5, 11)
     assert all(abs(a - b) > cfg.local_map_keyframes for a, b in itertools.combinations(ids, 2))  # maps spread
@@ -70,7 +70,21 @@ def test_spatial_candidates_take_the_nearest_and_keep_a_slot_for_an_uncertain_ol
     assert 20 not in ids  # its window would exceed max_window_m: the global search's
     # Without the uncertain slot the old pass is crowded out by the recent one.
     assert all(50 <= c.i <= 70 for c in C.spatial(_keyframes(100), poses, 99, unc, cfg.model_copy(
-        update={"uncertain_candidates": 0}), True, radius_m=2.0))
+        update={"uncertain_candidates": 0}), True, radius_m=2.0, path_m=np.arange(100.0)))
+
+
+def test_places_of_the_same_pass_are_not_candidates():
+    """A keyframe the robot passed 5 m ago along a straight path is the odometry's business (the path between is
+    not longer than their distance plus twice the overlap radius); the same place after a 40 m detour is not."""
+    K = 100
+    poses = np.array([G.xytheta_to_matrix(0.25 * k, 0.0, 0.0) for k in range(K)])
+    poses[40] = G.xytheta_to_matrix(0.25 * 99 - 1.0, 0.5, np.pi)  # came back after a detour
+    path = 0.25 * np.arange(K)
+    path[41:] += 40.0
+    unc = NodeUncertainty(np.full(K, 1e-4), np.full(K, 1e-6))
+    cands = C.spatial(_keyframes(K), poses, 99, unc, LoopConfig(near_candidates=8), True, radius_m=2.0, path_m=path)
+    assert [c.i for c in cands] == [40]
+    assert C.other_pass(path, np.full(99, 1.0), 99, 2.0)[40] and not C.other_pass(path, np.full(99, 1.0), 99, 2.0)[80]
 
 
 def test_global_places_are_those_within_reach_whose_window_no_spatial_search_covers():

@@ -72,17 +72,27 @@ def _spread(pool: NDArray[np.int64], quota: int, chosen: list[int], spacing: int
     return added
 
 
+def other_pass(path_m: Array, dist_m: Array, j: int, radius_m: float) -> NDArray[np.bool_]:
+    """Which keyframes ``0 … len(dist_m) − 1`` belong to another pass than keyframe *j*: the path between them
+    (*path_m*, cumulative metres per keyframe) is longer than their distance plus twice the overlap radius
+    — the trajectory left the place and came back, rather than seeing it still (those the odometry ties)."""
+    n = len(dist_m)
+    return path_m[j] - path_m[:n] >= dist_m + 2.0 * radius_m
+
+
 def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig,
-            planar: bool, radius_m: float) -> list[Candidate]:
-    """Spatial candidates of the new keyframe *j*: places within *radius_m* + ``window_sigmas`` σ whose
-    window stays within ``max_window_m``; the nearest first, then the most uncertain."""
+            planar: bool, radius_m: float, path_m: Array) -> list[Candidate]:
+    """Spatial candidates of the new keyframe *j*: places of other passes (:func:`other_pass`) within
+    *radius_m* + ``window_sigmas`` σ whose window stays within ``max_window_m``; the nearest first, then the
+    most uncertain."""
     last = j - config.exclude_recent_keyframes
     if last <= 0:
         return []
     win_xy, win_th, sd = windows(uncertainty, config, planar)
     dim = 2 if planar else 3
     dist = np.linalg.norm(poses[:last, :dim, 3] - poses[j, :dim, 3], axis=1)
-    reach = (dist <= radius_m + config.window_sigmas * sd[:last]) & (win_xy[:last] <= config.max_window_m)
+    reach = ((dist <= radius_m + config.window_sigmas * sd[:last]) & (win_xy[:last] <= config.max_window_m)
+             & other_pass(path_m, dist, j, radius_m))
     pool = np.flatnonzero(reach)
     pool = pool[np.argsort(dist[pool], kind="stable")]
     chosen = _spread(pool, config.near_candidates, [], config.local_map_keyframes)

@@ -91,7 +91,7 @@ class LoopCloser:
         ref = self.verifier.reference(keyframes, poses, j)
         out: list[LoopClosure] = []
         tried: set[int] = set()
-        for cand in C.spatial(keyframes, poses, j, uncertainty, c, self.planar, radius):
+        for cand in C.spatial(keyframes, poses, j, uncertainty, c, self.planar, radius, np.asarray(self._path_m)):
             tried.add(cand.i)
             self._run(cand, keyframes, poses, ref, out)
         for p in self.acceptance.hypotheses():
