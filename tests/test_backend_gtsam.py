@@ -77,7 +77,7 @@ def test_robust_kernel_helps_on_manhattan():
     assert rms_robust < 0.75 * rms_plain
 
 
-@pytest.mark.parametrize("name", ["huber", "cauchy", "geman_mcclure"])
+@pytest.mark.parametrize("name", ["huber", "cauchy", "geman_mcclure", "dcs"])
 def test_kernels_are_quadratic_near_zero(name):
     """Every kernel behaves like least squares for small residuals: on a graph with tiny noise, the robust
     and plain solutions coincide."""
@@ -142,3 +142,46 @@ def test_priors_fix_the_gauge():
     np.testing.assert_allclose(r.poses[0], T, atol=1e-6)
     c = solve_chordal(h, odometry_initialisation(h))
     np.testing.assert_allclose(c.poses, r.poses, atol=1e-6)
+
+
+def test_gnc_rejects_false_loop_closures_and_keeps_the_true_ones():
+    """Graduated non-convexity (TLS loss, Yang et al. RA-L 2020) on a noisy chain with 20 true loop closures
+    and 4 false ones 5 m off: the false ones end with weight 0, the true ones with 1, and the solution is as
+    close to the truth as least squares without the false closures; least squares with them is pulled away."""
+    from slam.backends.gtsam_backend import optimize
+    from slam.graph import PoseGraph
+
+    rng = np.random.default_rng(3)
+    P = np.array([geo.xytheta_to_matrix(0.5 * k, 2.0 * np.sin(0.1 * k), 0.05 * k) for k in range(60)])
+    info = np.diag([1e4, 1e4, 1e5])
+
+    def graph(with_false: bool) -> tuple[PoseGraph, list[int]]:
+        g = PoseGraph(2)
+        for k in range(60):
+            g.add_node(k, P[k] @ geo.xytheta_to_matrix(*rng.normal(0, [0.05, 0.05, 0.01])) if k else P[0])
+        for k in range(59):
+            g.add_edge(k, k + 1, geo.relative(P[k], P[k + 1]) @ geo.xytheta_to_matrix(*rng.normal(0, [0.01, 0.01, 0.003])),
+                       info, "odometry")
+        for _ in range(20):
+            i, j = sorted(rng.choice(60, 2, replace=False))
+            g.add_edge(int(i), int(j), geo.relative(P[i], P[j]), info, "loop")
+        false = []
+        if with_false:
+            for _ in range(4):
+                i, j = sorted(rng.choice(60, 2, replace=False))
+                false.append(g.num_edges)
+                g.add_edge(int(i), int(j), geo.relative(P[i], P[j]) @ geo.xytheta_to_matrix(5.0, 0.0, 0.3), info, "loop")
+        return g, false
+
+    def err(Q):
+        return float(np.abs(geo.relative(P[0], P[-1])[:2, 3] - geo.relative(Q[0], Q[-1])[:2, 3]).max())
+
+    g, false = graph(True)
+    res = optimize(g, g.poses, method="gnc")
+    loops = [e for e, k in enumerate(g.edge_kinds) if k == "loop"]
+    w = res.weights
+    assert all(w[e] < 0.01 for e in false) and all(w[e] > 0.99 for e in loops if e not in false)
+    assert all(w[e] == 1.0 for e, k in enumerate(g.edge_kinds) if k != "loop")  # known inliers
+    assert err(res.poses) < 0.05
+    assert err(optimize(g, g.poses, method="lm", use_kernels=False).poses) > 0.2
+

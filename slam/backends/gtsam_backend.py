@@ -59,7 +59,9 @@ def _kernel(kernel: RobustKernel):  # type: ignore[no-untyped-def]
     import gtsam
 
     m = gtsam.noiseModel.mEstimator
-    cls = {"huber": m.Huber, "cauchy": m.Cauchy, "geman_mcclure": m.GemanMcClure}[kernel.name]
+    # DCS: dynamic covariance scaling, Agarwal et al., "Robust map optimization using dynamic covariance
+    # scaling", ICRA 2013 (the closed form of switchable constraints, Sünderhauf & Protzel 2012).
+    cls = {"huber": m.Huber, "cauchy": m.Cauchy, "geman_mcclure": m.GemanMcClure, "dcs": m.DCS}[kernel.name]
     return cls.Create(float(kernel.k))
 
 
@@ -186,6 +188,7 @@ class GtsamResult:
     iterations: int
     time_s: float
     build_time_s: float
+    weights: Array | None = None  # GNC: per edge, 1 inlier … 0 rejected outlier
 
 
 def optimize(
@@ -199,8 +202,11 @@ def optimize(
     max_iterations: int = 100,
     relative_error_tol: float = 1e-6,
     absolute_error_tol: float = 1e-10,
+    gnc_inlier_probability: float = 0.99,
 ) -> GtsamResult:
-    """Batch Levenberg-Marquardt (``method="lm"``) or Gauss-Newton (``"gn"``) from *initial* poses.
+    """Batch Levenberg-Marquardt (``method="lm"``), Gauss-Newton (``"gn"``) or graduated non-convexity
+    (``"gnc"``: loop edges under a truncated quadratic whose threshold is the *gnc_inlier_probability*
+    χ² quantile, every other factor a known inlier) from *initial* poses.
 
     ``time_s`` is the optimiser's wall time only; building the factor graph is ``build_time_s``. The default
     relative tolerance (1e-6; GTSAM's own default is 1e-5) is the chordal solver's.
@@ -227,13 +233,32 @@ def optimize(
         params.setRelativeErrorTol(relative_error_tol)
         params.setAbsoluteErrorTol(absolute_error_tol)
         opt = gtsam.GaussNewtonOptimizer(fg, values, params)
+    elif method == "gnc":
+        # Graduated non-convexity with the truncated-least-squares loss (Yang, Antonante, Tzoumas & Carlone,
+        # "Graduated non-convexity for robust spatial perception", RA-L 2020) on the loop edges; every other
+        # factor (odometry, priors, the gauge) is a known inlier. Kernels on the edges are not used: GNC is the
+        # robust loss.
+        fg = build_factor_graph(graph, use_kernels=False, anchor=True, anchor_poses=P0)
+        kinds = graph.edge_kinds
+        inliers = [f for f in range(fg.size()) if f >= len(kinds) or kinds[f] != "loop"]
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(max_iterations)
+        lm.setRelativeErrorTol(relative_error_tol)
+        lm.setAbsoluteErrorTol(absolute_error_tol)
+        params = gtsam.GncLMParams(lm)
+        params.setKnownInliers(inliers)
+        params.setLossType(gtsam.GncLossType.TLS)
+        opt = gtsam.GncLMOptimizer(fg, values, params)
+        opt.setInlierCostThresholdsAtProbability(gnc_inlier_probability)
     else:
-        raise GraphError(f"unknown GTSAM method {method!r}; expected lm or gn")
+        raise GraphError(f"unknown GTSAM method {method!r}; expected lm, gn or gnc")
     initial_error = float(fg.error(values))
     result = opt.optimize()
     t2 = time.perf_counter()
     poses = from_values(result, graph.num_nodes, graph.dim)
-    return GtsamResult(poses, float(fg.error(result)), initial_error, int(opt.iterations()), t2 - t1, t1 - t0)
+    iterations = int(opt.iterations()) if hasattr(opt, "iterations") else 0
+    weights = np.asarray(opt.getWeights(), dtype=float)[: graph.num_edges] if method == "gnc" else None
+    return GtsamResult(poses, float(fg.error(result)), initial_error, iterations, t2 - t1, t1 - t0, weights)
 
 
 class IncrementalSmoother:

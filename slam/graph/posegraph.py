@@ -30,7 +30,7 @@ from .connectivity import component_labels, free_component_anchors
 Array = NDArray[np.float64]
 EdgeKind = Literal["odometry", "loop", "prior"]
 KINDS: tuple[str, ...] = ("odometry", "loop", "prior")
-KERNELS: tuple[str, ...] = ("huber", "cauchy", "geman_mcclure")
+KERNELS: tuple[str, ...] = ("huber", "cauchy", "geman_mcclure", "dcs")
 PRIOR_NODE = -1
 
 __all__ = ["PoseGraph", "Edge", "EdgeArrays", "RobustKernel", "EdgeKind", "KINDS", "KERNELS", "PRIOR_NODE",
