@@ -146,7 +146,8 @@ def test_chain_variance_without_a_step_edge_is_the_limit():
 def _verified(i: int, j: int, T: np.ndarray, est: np.ndarray | None, est_cov: np.ndarray | None, vouched: bool,
               cov: np.ndarray | None = None, source: Source = Source.SPATIAL) -> Verified:
     cand = Candidate(i, j, source, T if est is None else est, Window(1.0, 0.1),
-                     None if est is None else (est, est_cov), vouched)
+                     None if est is None else (est, est_cov), vouched,
+                     plausible=None if est is None else Window(1.0, np.radians(5.0)))
     return Verified(cand, T, np.diag([1e-4, 1e-4, 1e-5]) if cov is None else cov, 0.9, 0.02, 0.8, 3)
 
 
@@ -173,6 +174,11 @@ def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
         assert (lc is not None) == accepted
         assert acc.stats.accepted == int(accepted) and len(acc.pending) == int(not accepted)
         assert mahalanobis2(est, est_cov, T, cov, True) == pytest.approx(factor**2 * gate, rel=1e-6)
+    # Outside the window the estimate would have searched (a corridor turned round): rejected, not held for a group.
+    acc = _acceptance(cfg)
+    flipped = est @ G.xytheta_to_matrix(0.0, 0.0, np.pi)
+    assert acc.consider(_verified(0, 30, flipped, est, est_cov, True, cov), _keyframes(60), lambda v: True) is None
+    assert acc.pending == [] and acc.stats.rejections[Rejection.INCONSISTENT] == 1
 
 
 def test_an_alignment_held_pending_must_be_unique_and_one_the_estimate_vouches_for_is_not_asked():

@@ -5,8 +5,10 @@
   Mahalanobis distance of the alignment from the estimate's relative pose, under the sum of both
   covariances, is within the ``consistency_probability`` quantile of χ²(dof) (the χ² gate of
   Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
-* Everything else waits, *pending*: an alignment the estimate cannot vouch for, and one that
-  contradicts the estimate (the graph may be overconfident after a long loop). Pending closures are
+* Everything else waits, *pending*: an alignment the estimate cannot vouch for, and one that fails
+  the gate (the graph may be overconfident). But none outside three of the windows the estimate itself
+  would have searched (9 σ per axis, with the floors), when the place lies within spatial reach: a
+  descriptor match of a corridor seen turned round is an alias no group may overturn. Pending closures are
   accepted together when ``group_min_size`` of them, from as many keyframes, are pairwise consistent
   — each pair's cycle through the estimate's short stretches between their old and between their new
   keyframes passes the same χ² gate (pairwise consistent measurement set maximisation, PCM: Mangelson,
@@ -29,7 +31,7 @@ from registration import geometry as G
 from slam.keyframes import Keyframe
 
 from .config import LoopConfig
-from .types import LoopClosure, LoopStats, Rejection, Verified
+from .types import LoopClosure, LoopStats, Rejection, Verified, Window
 from .uncertainty import RelativeUncertainty
 
 Array = NDArray[np.float64]
@@ -52,6 +54,12 @@ def to_closure(v: Verified, keyframes: list[Keyframe], planar: bool, group: bool
     A = G.adjoint(Bj, planar=planar)
     return LoopClosure(c.i, c.j, Bi @ v.transform @ G.inverse(Bj), A @ v.covariance @ A.T, v.fitness, v.rmse_m,
                        c.source.value, group)
+
+
+def _within(expected: Array, T: Array, window: Window) -> bool:
+    """Whether *T* lies within ± *window* of *expected* (per axis of the translation, and in rotation angle)."""
+    d = G.inverse(expected) @ T
+    return bool(np.abs(d[:3, 3]).max() <= window.xy_m and G.rotation_angle(d[:3, :3]) <= window.theta_rad)
 
 
 def mahalanobis2(expected: Array, expected_cov: Array, T: Array, cov: Array, planar: bool) -> float:
@@ -80,13 +88,16 @@ class Acceptance:
         is *unique* in its search window (else it is dropped: a group of aliases agrees as well as a group
         of revisits)."""
         c = v.candidate
+        if c.plausible is not None and c.estimate is not None and not _within(c.estimate[0], v.transform, c.plausible):
+            self.stats.rejections[Rejection.INCONSISTENT] += 1
+            return None  # where the estimate says the robot cannot be: an alias no group may overturn
         if c.vouched and c.estimate is not None:
             if mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) <= self.gate:
                 lc = to_closure(v, keyframes, self.planar)
                 self.recent.append(lc)
                 self.stats.accepted += 1
                 return lc
-            self.stats.rejections[Rejection.INCONSISTENT] += 1  # held: a group may still overturn the estimate
+            self.stats.rejections[Rejection.INCONSISTENT] += 1  # held: a group may show the estimate overconfident
         if not unique(v):
             self.stats.rejections[Rejection.AMBIGUOUS] += 1
             return None

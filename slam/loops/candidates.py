@@ -61,6 +61,15 @@ def _vouched(win_xy: float, win_th: float, config: LoopConfig) -> bool:
     return bool(win_xy <= config.window_floor_m and win_th <= np.radians(config.window_floor_deg))
 
 
+_PLAUSIBLE_WINDOWS = 3.0  # a closure is implausible beyond three search windows of the estimate (9 σ per axis)
+
+
+def _plausible(win_xy: float, win_th: float) -> Window:
+    """The region around the estimate where a closure is plausible at all: three search windows (an
+    overconfident graph after a long loop is off by a few σ, an alias turned round by a hundred)."""
+    return Window(float(_PLAUSIBLE_WINDOWS * win_xy), float(min(np.pi, _PLAUSIBLE_WINDOWS * win_th)))
+
+
 def _spread(pool: NDArray[np.int64], quota: int, chosen: list[int], spacing: int) -> list[int]:
     """Up to *quota* of *pool* (in order) whose local maps (±*spacing*) do not overlap those *chosen*."""
     added: list[int] = []
@@ -103,7 +112,8 @@ def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUn
     for i in chosen:
         est = sensor_relative(keyframes, poses, i, j)
         out.append(Candidate(i, j, Source.SPATIAL, est, Window(float(win_xy[i]), float(win_th[i])),
-                             (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config)))
+                             (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config),
+                             plausible=_plausible(win_xy[i], win_th[i])))
     return out
 
 
@@ -137,14 +147,17 @@ def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: 
                uncertainty: NodeUncertainty, config: LoopConfig, radius_m: float, sector_rad: float) -> list[Candidate]:
     """Candidates from descriptor *hits* ``(place, yaw)``: the same position, the descriptor's relative
     heading, searched over ± half the overlap radius and ± two sectors; vouched like a spatial candidate
-    when the estimate is sure of the pair (a match that contradicts it is then an alias)."""
+    when the estimate is sure of the pair; plausible only within three of the estimate's own search
+    windows when the place is within spatial reach (a symmetric corridor looks the same turned round)."""
     win_xy, win_th, _ = windows(uncertainty, config, True)
     out = []
     for i, yaw in hits:
         est = sensor_relative(keyframes, poses, i, j)
         w = Window(max(config.window_floor_m, 0.5 * radius_m), 2.0 * sector_rad)
+        within = win_xy[i] <= config.max_window_m
         out.append(Candidate(i, j, Source.DESCRIPTOR, G.xytheta_to_matrix(0.0, 0.0, yaw), w,
-                             (est, uncertainty.covariance(i, True)), _vouched(win_xy[i], win_th[i], config)))
+                             (est, uncertainty.covariance(i, True)), _vouched(win_xy[i], win_th[i], config),
+                             plausible=_plausible(win_xy[i], win_th[i]) if within else None))
     return out
 
 

@@ -48,6 +48,7 @@ class LoopCloser:
         self.index = DescriptorIndex(PolarDescriptorConfig()) if planar and config.descriptor else None
         self._path_m: list[float] = []  # cumulative odometry path length at each keyframe
         self._global_turn = 0
+        self._radius = 0.0  # the overlap radius of the keyframe being closed
         self._global_searched: dict[int, int] = {}  # place → keyframe of its last global search
         self.trace: list[tuple[Candidate, object, dict]] | None = None  # set to a list: (candidate, outcome, figures) of every verification
 
@@ -56,13 +57,14 @@ class LoopCloser:
         return self.stats.as_dict()
 
     # ------------------------------------------------------------------ local-map size
-    def local_map_half(self, i: int, window_m: float) -> int:
+    def local_map_half(self, i: int, window_m: float, radius_m: float = 0.0) -> int:
         """Half-width (keyframes) of keyframe *i*'s local map for a search window of ± *window_m*: the
         smallest of ``local_map_keyframes`` · 2ⁿ (or ``max_local_map_keyframes``) whose path on each side of
-        *i* covers the window plus ``local_map_path_m`` (or reaches the ends of the trajectory so far)."""
+        *i* covers the window plus ``local_map_path_m`` (None: the overlap radius *radius_m*, so that the map
+        holds what the new scan can see) — or reaches the ends of the trajectory so far."""
         c = self.config
         path = self._path_m
-        need = window_m + c.local_map_path_m
+        need = window_m + (c.local_map_path_m if c.local_map_path_m is not None else radius_m)
         h = max(1, c.local_map_keyframes)
         while h < c.max_local_map_keyframes:
             lo, hi = max(0, i - h), min(len(path) - 1, i + h)
@@ -88,6 +90,7 @@ class LoopCloser:
         if not c.enabled:
             return [], False
         radius = C.overlap_radius(kj, c)
+        self._radius = radius
         ref = self.verifier.reference(keyframes, poses, j)
         out: list[LoopClosure] = []
         tried: set[int] = set()
@@ -119,7 +122,7 @@ class LoopCloser:
         elif cand.source is Source.GLOBAL:
             half = self.global_half
         else:
-            half = self.local_map_half(cand.i, cand.window.xy_m)
+            half = self.local_map_half(cand.i, cand.window.xy_m, self._radius)
         features = {} if self.trace is not None else None
         result = self.verifier.verify(cand, keyframes, poses, half, ref, features)
         if self.trace is not None:

@@ -29,7 +29,7 @@ class LoopConfig(BaseModel):
     near_candidates: int = Field(4, ge=0, description="spatial candidates per keyframe, nearest first (their local maps not overlapping)")
     uncertain_candidates: int = Field(2, ge=0, description="... plus this many of the most uncertain places within reach (an old pass is not crowded out by the recent one)")
     local_map_keyframes: int = Field(3, ge=0, description="a candidate's local map: its scan and those of ±this many keyframes, in its frame")
-    local_map_path_m: float = Field(0.5, ge=0, description="... widened to cover the search window: keyframes within window + this much path (m) of the candidate")
+    local_map_path_m: float | None = Field(0.5, ge=0, description="... widened to cover the search window: keyframes within window + this much path (m) of the candidate; None: the overlap radius")
     max_local_map_keyframes: int = Field(40, ge=1, description="... up to ±this many keyframes (memory and build time)")
     descriptor: bool = Field(True, description="2D: Scan Context place recognition (Kim & Kim 2018) when a keyframe closed nothing spatially")
     descriptor_candidates: int = Field(2, ge=0)

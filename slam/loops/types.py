@@ -63,6 +63,9 @@ class Candidate:
             this pair (the consistency test's reference), else None.
         vouched: the estimate is sure enough that a match consistent with it is a revisit, not an alias.
         map_half: the half-width (keyframes) of the local map to verify against; None: sized by the window.
+        plausible: the window around ``estimate[0]`` within which a closure is plausible at all (three
+            search windows of the estimate), or None when the place is beyond any spatial window (then
+            groups alone decide).
     """
 
     i: int
@@ -73,6 +76,7 @@ class Candidate:
     estimate: tuple[Array, Array] | None
     vouched: bool
     map_half: int | None = None
+    plausible: Window | None = None
 
 
 @dataclass(frozen=True)

@@ -9,9 +9,10 @@
    negative information — neither scan may have points where the other saw free space (Olson 2009,
    §III-B).
 4. For an alignment the acceptance stage holds pending, local uniqueness: no pose elsewhere within
-   three floor windows of the match may score within ``ambiguity_ratio`` of it (the ratio test of
-   place recognition); a corridor whose matches slide along it, or doors repeating along it, fails
-   it. Farther aliases (the same corridor on another floor of the map) are left to the group test.
+   three floor windows of the match, at any heading, may score within ``ambiguity_ratio`` of it (the
+   ratio test of place recognition); a corridor whose matches slide along it, doors repeating along
+   it, or a corridor that looks the same turned round (MIT Killian: groups of matches 180° off) fail
+   it. Farther aliases (the same corridor elsewhere in the map) are left to the group test.
 
 *The keyframe's own registration* (:class:`Reference`) is what a true match of this scan looks like:
 the scan against the local map of the keyframes just before it, at the estimate's relative pose. A
@@ -48,7 +49,7 @@ Array = NDArray[np.float64]
 _PYRAMID_LEVELS = 5  # 2^5 cells per top block: larger windows start from more blocks, not deeper grids
 _UNIQUE_RADIUS_CELLS = 3  # the neighbourhood of a match left out of the uniqueness search
 _UNIQUE_RADIUS_RAD = np.radians(3.0)
-_UNIQUE_WINDOW_FLOORS = 3  # uniqueness is asked around the match, within three floor windows (±3 m, ±15° by default)
+_UNIQUE_WINDOW_FLOORS = 3  # uniqueness is asked around the match, within three floor windows (±3 m by default), at every heading
 
 
 @dataclass
@@ -188,8 +189,8 @@ class Verifier:
 
     def unique(self, v: Verified, keyframes: list[Keyframe], poses: Array, half: int) -> bool:
         """Whether the verified alignment *v* is locally unique: no pose beyond a few cells and degrees of it,
-        within three floor windows of it (and within its search window), scores within ``ambiguity_ratio``
-        of its own score (2D with the correlative search; True
+        within three floor windows of it (and within its search window) at any heading, scores within
+        ``ambiguity_ratio`` of its own score (2D with the correlative search; True
         otherwise). Asked of every alignment the acceptance stage holds pending: accepted only in a group
         against the estimate, it must not be one of several equally good poses (a corridor's slides, the
         doors along it)."""
@@ -241,7 +242,7 @@ class Verifier:
             return np.inf
         cfg = self.config
         xy = min(c.window.xy_m, _UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
-        th = min(c.window.theta_rad, np.radians(_UNIQUE_WINDOW_FLOORS * cfg.window_floor_deg))
+        th = np.pi  # every heading: a symmetric corridor matches itself turned round as well as straight
         other = correlative.best_elsewhere(pts, pyr, T, xy, th, T,
                                            _UNIQUE_RADIUS_CELLS * pyr.resolution, _UNIQUE_RADIUS_RAD, floor * own)
         return 0.0 if other is None else other / own
