@@ -56,7 +56,7 @@ class LoopConfig(BaseModel):
     ambiguity_ratio: float = Field(0.9, gt=0, le=1, description="a closure the estimate cannot vouch for must be unique: the best correlative score outside its neighbourhood must stay below this fraction of its own")
     group_min_size: int = Field(3, ge=2, description="closures the estimate cannot vouch for are accepted together when this many, from as many keyframes, agree pairwise (PCM, Mangelson et al. 2018)")
     group_window_keyframes: int = Field(10, ge=1, description="pending closures wait this many keyframes for a group, and a group is decided once its window has passed")
-    relocalise_sigmas: float = Field(3.0, gt=0, description="an accepted group with a member this many σ (per degree of freedom) from the estimate moves the graph by a batch solve without kernels first: a robust kernel barely lets a closure that far pull")
+    relocalise_sigmas: float = Field(10.0, gt=0, description="an accepted group with a member this many σ (per degree of freedom) from the estimate moves the graph by a batch solve without kernels first: the Cauchy kernel (scale 1σ) leaves a closure that far 1 % of its weight")
     # ------------------------------------------------------------------ closures in the back end
     robust_kernel: Literal["none", "huber", "cauchy", "gm"] = "cauchy"
     robust_scale: float = Field(1.0, gt=0, description="kernel width in whitened units (σ)")
