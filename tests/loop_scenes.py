@@ -50,6 +50,15 @@ def room() -> World:
     return World(occ, np.ones_like(occ), RES, origin, "test_room")
 
 
+def room_with_a_wall_across(x: float = 6.0) -> World:
+    """The :func:`room` with a wall across it at *x* (a door closed, a screen put up) — for one pass only."""
+    occ, xs, ys, origin = _grid(12.0, 8.0)
+    base = room()
+    occ[:] = base.occupied
+    _box(occ, xs, ys, x, 0.0, x + 0.1, 8.0)
+    return World(occ, np.ones_like(occ), RES, origin, "test_room_wall")
+
+
 def corridor(length: float = 40.0) -> World:
     """A featureless corridor, 2 m wide and *length* m long (its ends beyond the laser's reach)."""
     occ, xs, ys, origin = _grid(length, 2.0)
@@ -58,15 +67,16 @@ def corridor(length: float = 40.0) -> World:
     return World(occ, np.ones_like(occ), RES, origin, "test_corridor")
 
 
-def keyframes(world: World, xyt: list[tuple[float, float, float]], seed: int = 0, laser: LaserSpec = LASER
-              ) -> list[Keyframe]:
-    """A keyframe per pose ``(x, y, θ)`` (base = sensor), scanned in *world*; ``odom_pose`` is the true pose."""
+def keyframes(world: World, xyt: list[tuple[float, float, float]], seed: int = 0, laser: LaserSpec = LASER,
+              first_id: int = 0) -> list[Keyframe]:
+    """A keyframe per pose ``(x, y, θ)`` (base = sensor), scanned in *world*; ``odom_pose`` is the true pose;
+    ids from *first_id*."""
     rng = np.random.default_rng(seed)
     xyt = np.asarray(xyt, dtype=float)
     ranges = cast_rays(world, xyt, laser, rng=rng, range_noise=laser.noise_std)
     angles = laser.angles()
     out = []
-    for k, (pose, r) in enumerate(zip(xyt, ranges)):
+    for k, (pose, r) in enumerate(zip(xyt, ranges), start=first_id):
         hit = np.isfinite(r)
         pts = np.column_stack([r[hit] * np.cos(angles[hit]), r[hit] * np.sin(angles[hit])])
         frame = Frame(float(k), pts, k, angles, np.where(hit, r, np.inf), ~hit, max_range=laser.range_max)

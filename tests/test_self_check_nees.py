@@ -10,7 +10,7 @@ from registration import geometry as G
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, self_check
 
-from tests.loop_scenes import keyframes, room
+from tests.loop_scenes import keyframes, room, room_with_a_wall_across
 
 
 def _two_passes():
@@ -33,6 +33,19 @@ def test_the_true_map_is_consistent_and_a_pass_moved_one_metre_is_suspect_where_
     assert bad.verdict == "suspect" and bad.keyframes_contradicting > 0.1 * bad.keyframes_checked
     flagged = {k for w in bad.where for k in range(w["first_keyframe"], w["last_keyframe"] + 1)}
     assert flagged & set(range(31, len(kfs)))
+
+
+def test_a_wall_put_across_the_room_in_one_pass_is_not_a_wrong_map():
+    """The second pass sees a wall across the room that the first did not (a door closed): its points lie in
+    the first pass's free space, but not the other way round (the first pass's far walls are behind it).
+    Only a misplaced scan contradicts both ways; the verdict stays consistent."""
+    first = [(x, 3.0, 0.0) for x in np.linspace(1.5, 10.5, 19)]
+    away = [(10.5, 3.0 + 0.3 * k, np.pi / 2) for k in range(1, 13)]
+    second = [(x, 3.2, np.pi) for x in np.linspace(10.5, 6.5, 9)]  # stays east of the new wall at x = 6
+    kfs = keyframes(room(), first + away, seed=7) + keyframes(room_with_a_wall_across(6.0), second, seed=8, first_id=31)
+    poses = np.array([kf.odom_pose for kf in kfs])
+    sc = self_check(kfs, poses, [], True, SelfCheckConfig(exclude_recent_keyframes=5))
+    assert sc.keyframes_checked > 5 and sc.verdict == "consistent"
 
 
 def test_closures_the_solution_violates_are_counted_and_make_the_run_suspect():

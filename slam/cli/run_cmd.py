@@ -233,7 +233,9 @@ def run(
     typer.echo(f"loop_closures: {s['loop_closures']}")
     sc = s.get("self_check") or {}
     if sc:
-        where = "; ".join(f"keyframes {w['first_keyframe']}–{w['last_keyframe']} (t {w['first_stamp']:.1f}–{w['last_stamp']:.1f} s)"
+        t0 = sc.get("start_stamp", 0.0)
+        where = "; ".join(f"keyframes {w['first_keyframe']}–{w['last_keyframe']} "
+                          f"({w['first_stamp'] - t0:.0f}–{w['last_stamp'] - t0:.0f} s into the log)"
                           for w in sc.get("where", [])[:3])
         typer.echo(f"self_check: {sc['verdict']}" + (f" ({where})" if sc["verdict"] != "consistent" and where else ""))
     typer.echo(f"wall_time_s: {s['wall_time_s']:.2f}")

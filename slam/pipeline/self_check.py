@@ -2,10 +2,11 @@
 
 Two symptoms of a wrong map, both measured on the final solution:
 
-1. **Closure residuals.** Each accepted loop closure's squared Mahalanobis distance from the final
-   relative pose of its keyframes, under the closure's covariance. A correct closure the solution
-   satisfies lies within the χ²(dof) quantile ``closure_probability``; the fraction beyond it (kept
-   and pruned closures alike) is reported, with Cartographer's 20 cm / 1° criterion beside it.
+1. **Closure residuals.** Each accepted loop closure (kept and pruned alike) against the final
+   relative pose of its keyframes: the fraction violated by more than Cartographer's 20 cm / 1°
+   (Hess et al. 2016, §VII-B) decides; the squared Mahalanobis distance under the closure's own
+   covariance, and how many lie beyond the χ²(dof) quantile ``closure_probability``, are reported
+   beside it (closure covariances are tighter than their errors on long-range scans).
 2. **Scans that contradict the map.** A keyframe's scan contradicts the map where its points fall
    into free space another keyframe observed at the same place (its beams passed through): the
    negative-information test of scan matching (Olson 2009, §III-B) applied to the final poses, between
@@ -39,9 +40,9 @@ class SelfCheckConfig:
     """Limits of the verdict (algorithm constants; ``docs/LOOP_CLOSURE.md`` has the development-set figures)."""
 
     closure_probability: float = 0.999  # χ² quantile a satisfied closure stays within
-    max_violated_closures: float = 0.05  # fraction of closures beyond it
+    max_violated_closures: float = 0.05  # fraction of closures the solution violates by more than 20 cm / 1°
     neighbours: int = 3  # nearest keyframes of other passes each keyframe is checked against
-    scan_violation: float = 0.3  # a keyframe contradicts the map when this fraction of its points lies in another's free space ...
+    scan_violation: float = 0.15  # a keyframe contradicts the map when this fraction of its points lies in another's free space ...
     max_contradicting_keyframes: float = 0.03  # ... and the map is suspect when this fraction of keyframes do
     exclude_recent_keyframes: int = 15  # keyframes this close in sequence are the same pass
     min_overlap: float = 0.3  # a pair counts in a direction when this fraction of the points falls on the other's returned beams
@@ -61,6 +62,7 @@ class SelfCheck:
     keyframes_checked: int
     keyframes_contradicting: int
     where: list[dict] = field(default_factory=list)  # clusters of contradicting keyframes: first/last id and stamp
+    start_stamp: float = 0.0  # of the first keyframe, so that the stamps above read as times into the log
 
     def as_dict(self) -> dict:
         return dict(vars(self))
@@ -78,10 +80,11 @@ def closure_chi2(closures: list[LoopClosure], poses: Array, planar: bool) -> Arr
 
 def contradictions(keyframes: list[Keyframe], poses: Array, config: SelfCheckConfig) -> tuple[Array, Array]:
     """Per keyframe, the median over its ``neighbours`` nearest keyframes of other passes of the fraction of
-    points one scan of the pair has in the other's observed free space (the larger direction), and
-    whether it was checked at all (it has such neighbours within reach that overlap it). The median,
-    not the maximum: a door opened or a person walking past contradicts one pass, a misplaced map
-    every pass. 2D scans only."""
+    points one scan of the pair has in the other's observed free space, the smaller of the two
+    directions, and whether it was checked at all (it has such neighbours within reach that overlap
+    it). Both directions: a scan placed wrong puts its walls into the other's free space and the
+    other's into its own, while a door closed in one pass or a person walking past contradicts one
+    direction only. The median over neighbours: a misplaced map contradicts every pass. 2D only."""
     K = len(keyframes)
     values: list[list[float]] = [[] for _ in range(K)]
     if K < 2 or keyframes[0].frame.angles is None:
@@ -119,7 +122,7 @@ def contradictions(keyframes: list[Keyframe], poses: Array, config: SelfCheckCon
                 continue  # too little overlap to say anything
             done.add(pair)
             taken += 1
-            v = max(v_i, v_j)
+            v = min(v_i, v_j)  # both ways: a door or a person in one scan contradicts only the other
             values[i].append(v)
             values[j].append(v)
     checked = np.array([len(v) > 0 for v in values])
@@ -162,9 +165,10 @@ def self_check(keyframes: list[Keyframe], poses: Array, closures: list[LoopClosu
             crit += 1
     worst, checked = contradictions(keyframes, poses, config) if planar else (np.zeros(len(keyframes)), np.zeros(len(keyframes), bool))
     bad_kf = np.flatnonzero(checked & (worst > config.scan_violation))
-    frac_closures = n_bad / len(closures) if closures else 0.0
+    frac_closures = crit / len(closures) if closures else 0.0
     frac_kf = len(bad_kf) / max(int(checked.sum()), 1)
     ok = frac_closures <= config.max_violated_closures and frac_kf <= config.max_contradicting_keyframes
     return SelfCheck("consistent" if ok else "suspect", len(closures), n_bad, crit,
                      float(np.median(m2)) if len(m2) else 0.0, int(checked.sum()), len(bad_kf),
-                     _clusters(bad_kf, keyframes, config.exclude_recent_keyframes))
+                     _clusters(bad_kf, keyframes, config.exclude_recent_keyframes),
+                     float(keyframes[0].stamp) if keyframes else 0.0)
