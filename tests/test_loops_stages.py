@@ -160,7 +160,8 @@ def _acceptance(cfg: LoopConfig | None = None, K: int = 60, step_cov: float = 1e
 
 def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
     """The gate is the consistency_probability quantile of χ²(3) on the Mahalanobis distance under the sum
-    of both covariances: an offset just inside is accepted alone, just outside held pending."""
+    of both covariances: an offset just inside is accepted alone, just outside rejected (where the estimate
+    vouches, no group may overturn it)."""
     cfg = LoopConfig()
     gate = chi2.ppf(cfg.consistency_probability, 3)
     est = G.xytheta_to_matrix(2.0, 0.0, 0.0)
@@ -172,7 +173,8 @@ def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
         acc = _acceptance(cfg)
         lc = acc.consider(_verified(0, 30, T, est, est_cov, True, cov), _keyframes(60), lambda v: True)
         assert (lc is not None) == accepted
-        assert acc.stats.accepted == int(accepted) and len(acc.pending) == int(not accepted)
+        assert acc.stats.accepted == int(accepted) and acc.pending == []
+        assert acc.stats.rejections[Rejection.INCONSISTENT] == int(not accepted)
         assert mahalanobis2(est, est_cov, T, cov, True) == pytest.approx(factor**2 * gate, rel=1e-6)
     # Outside the window the estimate would have searched (a corridor turned round): rejected, not held for a group.
     acc = _acceptance(cfg)

@@ -5,10 +5,12 @@
   Mahalanobis distance of the alignment from the estimate's relative pose, under the sum of both
   covariances, is within the ``consistency_probability`` quantile of χ²(dof) (the χ² gate of
   Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
-* Everything else waits, *pending*: an alignment the estimate cannot vouch for, and one that fails
-  the gate (the graph may be overconfident). But none outside three of the windows the estimate itself
-  would have searched (9 σ per axis, with the floors), when the place lies within spatial reach: a
-  descriptor match of a corridor seen turned round is an alias no group may overturn. Pending closures are
+  One that fails the gate is rejected: where the estimate vouches, no group overturns it (a road
+  whose trees repeat every metre offered Almería a consistent group 1 m along).
+* Everything else — an alignment the estimate cannot vouch for — waits, *pending*. But none outside
+  three of the windows the estimate itself would have searched (9 σ per axis, with the floors), when
+  the place lies within spatial reach: a descriptor match of a corridor seen turned round is an alias
+  no group may overturn. Pending closures are
   accepted together when ``group_min_size`` of them, from as many keyframes, are pairwise consistent
   — each pair's cycle through the estimate's short stretches between their old and between their new
   keyframes passes the same χ² gate (pairwise consistent measurement set maximisation, PCM: Mangelson,
@@ -97,7 +99,8 @@ class Acceptance:
                 self.recent.append(lc)
                 self.stats.accepted += 1
                 return lc
-            self.stats.rejections[Rejection.INCONSISTENT] += 1  # held: a group may show the estimate overconfident
+            self.stats.rejections[Rejection.INCONSISTENT] += 1
+            return None  # the estimate vouches and disagrees: no group overturns it
         if not unique(v):
             self.stats.rejections[Rejection.AMBIGUOUS] += 1
             return None
