@@ -173,6 +173,11 @@ class IcpOdometryConfig(_Frozen):
     unguided_window_m: float | None = Field(None, gt=0.0)
     unguided_window_rad: float | None = Field(None, gt=0.0)
     unguided_resolution_m: float = Field(0.05, gt=0.0)
+    #: When the best pose scores below unguided_escalation × the median of the last scans' scores (the
+    #: robot turned or jumped beyond the window between two kept scans), the search is repeated over
+    #: twice the distance and every heading, around the guess and around the last pose; its result is
+    #: kept when it scores better by the same factor. None = never.
+    unguided_escalation: float | None = Field(0.8, gt=0.0, le=1.0)
 
 
 def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:

@@ -209,6 +209,8 @@ class IcpOdometry(Odometry):
         self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
         self._map_pose: Array | None = None
         self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
+        self._unguided_scores: deque[float] = deque(maxlen=50)  # best scores of the last unguided searches
+        self.unguided_escalations = 0  # searches repeated over every heading
         self._pyramid = None  # likelihood pyramid of the current map (the search without wheel odometry), likewise
         self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
         self._prev_wheel: tuple[Array, float] | None = None  # previous wheel increment and its interval (s)
@@ -239,20 +241,35 @@ class IcpOdometry(Odometry):
 
     def _place_unguided(self, pts: Array, guess: Array) -> Array:
         """Without wheel odometry (2D): the best pose of a correlative search of the configured window around
-        the constant-velocity *guess* on the local map, when it scores better than the guess."""
+        the constant-velocity *guess* on the local map, when it scores better than the guess; a poor best
+        (``unguided_escalation``) repeats the search over twice the distance and every heading, whose best
+        replaces it when it scores higher by the same factor."""
         from . import correlative
 
         cfg = self.config
         if self._pyramid is None:
-            window = int(np.ceil(cfg.unguided_window_m / cfg.unguided_resolution_m))
+            window = int(np.ceil(2 * cfg.unguided_window_m / cfg.unguided_resolution_m))
             levels = int(min(6, np.ceil(np.log2(2 * window + 1))))
             self._pyramid = correlative.LikelihoodPyramid(np.vstack(self._map)[:, :2], cfg.unguided_resolution_m,
                                                           cfg.unguided_resolution_m, levels=levels)
         try:
             found = correlative.match(pts[:, :2], self._pyramid, _planar(guess), cfg.unguided_window_m,
                                       cfg.unguided_window_rad or 0.0)
+            typical = float(np.median(self._unguided_scores)) if len(self._unguided_scores) >= 5 else None
+            if cfg.unguided_escalation is not None and typical is not None and found.score < cfg.unguided_escalation * typical:
+                self.unguided_escalations += 1
+                # The wider search must restore what the window lost (beat it by the same factor): a corridor
+                # seen the other way round scores a little better than a poor but right pose.
+                bar = found.score / cfg.unguided_escalation
+                for centre in (guess, self._pose):
+                    wide = correlative.match(pts[:, :2], self._pyramid, _planar(centre), 2 * cfg.unguided_window_m,
+                                             np.pi, min_score=bar)
+                    if wide.score > bar:
+                        found = correlative.CorrelativeResult(wide.transform, wide.score, found.guess_score)
+                        bar = wide.score
         except DegenerateInputError:
             return guess
+        self._unguided_scores.append(found.score)
         return found.transform if found.score > found.guess_score else guess
 
     def _disagree(self, a: Array, b: Array) -> bool:

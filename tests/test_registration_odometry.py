@@ -313,3 +313,36 @@ def test_without_wheels_a_correlative_search_places_scans_the_constant_velocity_
         errors[window] = (np.linalg.norm(E[:2, 3]), abs(np.degrees(geo.matrix_to_xytheta(E)[2])))
     assert errors[1.0][0] < 0.05 and errors[1.0][1] < 1.0
     assert errors[None][0] > 0.3 or errors[None][1] > 5.0
+
+
+def test_without_wheels_a_turn_beyond_the_window_is_found_by_the_escalated_search():
+    """Kept scans of a path that turns 70° in place between two of them (as GMapping keeps a scan per
+    0.5 rad turned, and a log may skip more): beyond the ±30° window the best pose scores poorly, below
+    0.8 of the recent scans' median, so the search is repeated at every heading over ±2 m and the path
+    ends within 5 cm and 1°; without the escalation it does not."""
+    from tests.loop_scenes import LASER, room
+
+    sim = pytest.importorskip("evaluation.sim")
+    turn = np.radians(70.0)
+    xyt = [(2.0 + 0.3 * k, 3.0, 0.0) for k in range(8)] + [(4.1, 3.0, turn)]
+    xyt += [(4.1 + 0.3 * k * np.cos(turn), 3.0 + 0.3 * k * np.sin(turn), turn) for k in range(1, 6)]
+    R = sim.cast_rays(room(), np.array(xyt), LASER, rng=np.random.default_rng(5), range_noise=0.01)
+    ang = LASER.angles()
+    frames = []
+    for k, r in enumerate(R):
+        ok = np.isfinite(r)
+        frames.append(Frame(0.1 * k, np.column_stack([r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])]), index=k))
+    truth = geo.relative(geo.xytheta_to_matrix(*xyt[0]), geo.xytheta_to_matrix(*xyt[-1]))
+    errors, escalations = {}, {}
+    for escalation in (None, 0.8):
+        odo = IcpOdometry(IcpOdometryConfig(icp=IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05),
+                                            point_to_plane=True, use_wheel_odometry=False, map_voxel_size=0.03,
+                                            unguided_window_m=1.0, unguided_window_rad=np.radians(30.0),
+                                            unguided_escalation=escalation))
+        odo.run(frames)
+        E = geo.relative(truth, odo.world_T_sensor)
+        errors[escalation] = (np.linalg.norm(E[:2, 3]), abs(np.degrees(geo.matrix_to_xytheta(E)[2])))
+        escalations[escalation] = odo.unguided_escalations
+    assert errors[0.8][0] < 0.05 and errors[0.8][1] < 1.0, errors
+    assert escalations[0.8] >= 1 and escalations[None] == 0
+    assert errors[None][0] > 0.3 or errors[None][1] > 5.0, errors

@@ -38,6 +38,7 @@ class FrontEndSummary:
 
 def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
     stats = {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
+             "unguided_escalations": getattr(front.odometry, "unguided_escalations", 0),
              "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped}
     cal = front.wheel_calibration
     if cal is not None:
