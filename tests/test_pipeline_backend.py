@@ -173,3 +173,37 @@ def test_the_map_snaps_back_when_correct_closures_arrive_after_a_wrong_one():
     assert be.pruned_loops == 1
     err = G.relative(truth[0], truth) @ np.linalg.inv(G.relative(P[0], P))
     assert np.abs(err[:, :2, 3]).max() < 0.05
+
+
+@pytest.mark.parametrize("alone", [True, False])
+def test_a_lone_odometry_edge_that_slid_yields_to_the_closures(alone):
+    """Two laps of a 10 m square; one odometry edge of the second lap slid 0.3 m along its side (a scan match
+    in a corridor) and claims 2 cm like the others (15 σ). Closures between the laps (the truth) pull
+    against it. As the step's only measurement (no wheel edge: ``alone``) it carries the Cauchy kernel and
+    yields: the laps come back within 2 cm of the truth and no closure is pruned. Backed by a wheel edge
+    (no kernel) the same bad edge spreads its error over the closures and its neighbours instead."""
+    be = PipelineBackend(BackendConfig(kind="gtsam"), LoopConfig(), planar=True)
+    truth = []
+    for k in range(40):
+        side, f = divmod(k % 20, 5)
+        xy = {0: (2.0 * f, 0.0), 1: (10.0, 2.0 * f), 2: (10.0 - 2.0 * f, 10.0), 3: (0.0, 10.0 - 2.0 * f)}[side]
+        truth.append(G.xytheta_to_matrix(xy[0], xy[1], side * np.pi / 2))
+    odo_cov = np.diag([0.02**2, 0.02**2, 0.005**2])
+    lc_cov = np.diag([0.01**2, 0.01**2, 0.003**2])
+    be.add_keyframe(0, truth[0])
+    for k in range(1, 40):
+        z = G.relative(truth[k - 1], truth[k])
+        if k == 27:
+            z = z @ G.xytheta_to_matrix(0.3, 0.0, 0.0)  # slid 0.3 m along the side
+        be.add_keyframe(k, be.poses[k - 1] @ z)
+        be.add_odometry(k - 1, k, z, odo_cov, alone=alone)
+        added = k >= 21
+        if added:
+            be.add_loop(LoopClosure(k - 20, k, G.relative(truth[k - 20], truth[k]), lc_cov, 1.0, 0.01, "spatial"))
+        be.update(added)
+    P = be.finish()
+    err = np.abs((G.relative(truth[0], np.array(truth)) @ np.linalg.inv(G.relative(P[0], P)))[:, :2, 3]).max()
+    if alone:
+        assert err < 0.02 and be.pruned_loops == 0
+    else:
+        assert err > 0.1

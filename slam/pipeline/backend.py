@@ -2,9 +2,10 @@
 
 Every keyframe, odometry edge and loop closure is recorded in a :class:`~slam.graph.posegraph.PoseGraph`
 (written to ``graph.g2o``) and mirrored into the online solver. ``finish()`` runs the final batch
-optimisation (GTSAM Levenberg–Marquardt with robust kernels on loop edges, or our chordal solver),
-then drops loop closures the solution still violates by more than Cartographer's criterion
-(Hess et al. 2016, §VII-B: 20 cm / 1°) and solves again, for a few rounds.
+optimisation (GTSAM Levenberg–Marquardt with robust kernels on loop edges and on the odometry edges
+of steps no wheel odometry measured, or our chordal solver), then drops loop closures the solution still
+violates by more than Cartographer's criterion (Hess et al. 2016, §VII-B: 20 cm / 1°) and solves
+again, for a few rounds.
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ class PipelineBackend:
         self.graph = PoseGraph(self.dim)
         self.kernel = (RobustKernel(_KERNEL_NAMES[loops.robust_kernel], loops.robust_scale)
                        if loops.robust_kernel != "none" else None)
+        self.lone_kernel = (RobustKernel("cauchy", config.lone_odometry_kernel_sigmas)
+                            if config.lone_odometry_kernel_sigmas is not None else None)
         self._buf = np.zeros((64, 4, 4))  # current estimates of keyframes 0 … _n − 1, doubling when full
         self._n = 0
         self._since_solve = 0
@@ -63,11 +66,14 @@ class PipelineBackend:
         if self._smoother is not None:
             self._smoother.add_node(node_id, initial_pose)
 
-    def add_odometry(self, i: int, j: int, measurement: Array, covariance: Array) -> None:
+    def add_odometry(self, i: int, j: int, measurement: Array, covariance: Array, alone: bool = False) -> None:
+        """An odometry edge; *alone*: the step's only measurement (no wheel odometry measured it), which
+        then carries the Cauchy kernel of ``lone_odometry_kernel_sigmas``."""
         info = np.linalg.inv(covariance)
-        self.graph.add_edge(i, j, measurement, info, "odometry")
+        kernel = self.lone_kernel if alone else None
+        self.graph.add_edge(i, j, measurement, info, "odometry", kernel)
         if self._smoother is not None:
-            self._smoother.add_edge(i, j, measurement, info)
+            self._smoother.add_edge(i, j, measurement, info, kernel)
 
     def add_loop(self, lc: LoopClosure) -> None:
         info = np.linalg.inv(lc.covariance)
@@ -103,7 +109,7 @@ class PipelineBackend:
 
     def relocalise(self) -> None:
         """Re-solve after closures that say the estimate is metres off (a global-search group, see
-        :class:`~slam.pipeline.loop_closure.LoopCloser`): robust kernels weigh a closure by its residual at
+        :class:`~slam.loops.closer.LoopCloser`): robust kernels weigh a closure by its residual at
         the current estimate, so a Cauchy-weighted closure 45 m away pulls with ~10⁻⁷ of its weight
         and iSAM2 stays where it is. A batch solve without kernels first moves the graph onto the
         closures; the kernelled batch solve from there (and iSAM2 restarted at it) keeps its robustness

@@ -75,6 +75,7 @@ class BackendConfig(_Model):
     isam2_relinearize_threshold: float = Field(0.01, gt=0)
     isam2_factorization: Literal["cholesky", "qr"] = Field("cholesky", description="iSAM2's linear solver; after the first 'indeterminate system' error the run restarts iSAM2 from a batch solution with QR and keeps it. Cholesky squares the condition number: on the Freiburg hospital's long odometry chain (millimetre wheel edges during turns in place) it failed from keyframe 2349 on, 13 restarts while it stayed Cholesky, and QR factored every later update; QR throughout costs Intel 13.4 s of back end against 9.8 s")
     final_batch: bool = True
+    lone_odometry_kernel_sigmas: float | None = Field(3.0, gt=0, description="Cauchy kernel, threshold in σ, on a scan-registration edge of a step no wheel odometry measured (a log without it, or wheel_edges off): a match that slid along a corridor, whose covariance still claims centimetres, then yields to the loop closures; None = no kernel. Steps the wheels measured keep no kernel, even where their wheel edge was left out as lumpy (there the registration was preferred)")
     chordal_every_keyframes: int = Field(50, ge=1, description="chordal back end: batch re-solve period for the online estimate")
 
 

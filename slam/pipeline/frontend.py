@@ -45,6 +45,7 @@ class OdometryEdge:
     j: int
     measurement: Array
     covariance: Array
+    wheels: bool = False  # wheel odometry measured this step too (its edge may still have been left out as lumpy)
 
 
 @dataclass
@@ -226,8 +227,9 @@ class FrontEnd:
                     cov = self._cov_since_kf if self._cov_since_kf is not None else np.zeros((self._dof, self._dof))
                     covs = EdgeCovariance(cov, cov)
                 floor = self._floor(rel)
-                edge = OdometryEdge(prev.id, kf.id, rel, covs.posterior + floor)
-                if c.wheel_edges and prev.frame.odom is not None and frame.odom is not None:
+                wheels = c.wheel_edges and prev.frame.odom is not None and frame.odom is not None
+                edge = OdometryEdge(prev.id, kf.id, rel, covs.posterior + floor, wheels)
+                if wheels:
                     wheel = self._wheel_edge(prev, kf, edge, covs.prior + floor)
                     if wheel is not None:
                         self.wheel_edges.append(wheel)

@@ -4,7 +4,7 @@
 :func:`slam.pipeline.run.run_slam` does (the front end never looks at the back end, so its keyframes and
 odometry edges are the same) and keeps the keyframes, their odometry/wheel edges and the per-scan track.
 ``replay_loops`` then feeds that keyframe sequence through a fresh
-:class:`~slam.pipeline.loop_closure.LoopCloser` and :class:`~slam.pipeline.backend.PipelineBackend` in the
+:class:`~slam.loops.closer.LoopCloser` and :class:`~slam.pipeline.backend.PipelineBackend` in the
 same incremental order as ``run_slam`` — both go through
 :class:`~slam.pipeline.online_graph.OnlineGraph`: add keyframe, add odometry (+ wheel) edge, detect against the
 online estimate, add closures, iSAM2 update — and finishes with the final batch solve and pruning.
@@ -84,7 +84,7 @@ class LoopReplay:
 
     Attributes:
         loops: every closure the verifier accepted, in acceptance order (before pruning).
-        stats: :class:`~slam.pipeline.loop_closure.LoopStats` counters plus ``pruned``.
+        stats: :class:`~slam.loops.types.LoopStats` counters plus ``pruned``.
         keyframe_poses: ``(K, 4, 4)`` optimised keyframe poses after the final solve and pruning.
         backend: the back end (its graph holds the closures kept after pruning).
         time_s: wall-clock seconds of detection, verification, online and final solves.

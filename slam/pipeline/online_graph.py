@@ -45,7 +45,7 @@ class OnlineGraph:
             be.add_keyframe(kf.id, kf.odom_pose)
         else:
             be.add_keyframe(kf.id, be.poses[edge.i] @ edge.measurement)
-            be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance)
+            be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance, alone=not edge.wheels)
             self.uncertainty.add_edge(edge.i, edge.j, edge.covariance)
             if wheel is not None:
                 be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
