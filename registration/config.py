@@ -102,8 +102,8 @@ class KissOdometryConfig(_Frozen):
     def planar_default(cls) -> "KissOdometryConfig":
         """Indoor 2D laser defaults: 20 m range, 10 cm voxels with ≤ 5 points, no deskew, one thread.
 
-        Chosen on the Intel log (benchmarks/registration.py): one thread is ~5× faster than TBB's
-        automatic pool for 180-beam scans, and 20 m / 5 points per voxel keep the local map small.
+        One thread is ~5× faster than TBB's automatic pool for scans of a few hundred beams, and 20 m /
+        5 points per voxel keep the local map small (``benchmarks/registration.py``, docs/ODOMETRY.md).
         """
         return cls(max_range=20.0, min_range=0.1, deskew=False, voxel_size=0.1, max_points_per_voxel=5,
                    initial_threshold=0.5, min_motion_th=0.02, max_num_threads=1)
@@ -146,8 +146,8 @@ class IcpOdometryConfig(_Frozen):
     #: registration failure (e.g. a wrong basin in a featureless stretch) and the guess is kept instead
     max_guess_deviation_m: float | None = Field(None, gt=0.0)
     max_guess_deviation_rad: float | None = Field(None, gt=0.0)
-    #: wheel odometry that arrives in lumps (a few scans of zero motion, then the whole turn at once, as in
-    #: the MIT CSAIL log) is a wrong guess twice. When the wheel increment differs by more than this
+    #: wheel odometry that arrives in lumps (a few scans of zero motion, then the whole turn at once) is a
+    #: wrong guess twice. When the wheel increment differs by more than this
     #: (m, rad) from the constant-velocity one (the last ICP increment) and from the previous wheel
     #: increment, ICP also runs from the former; a result that stayed near its own start beats one
     #: that left it, else the clearly larger inlier fraction (by ``alternative_start_min_gain``) wins.

@@ -22,22 +22,22 @@ class _Model(BaseModel):
 
 class OdometryStageConfig(_Model):
     """Which registration source gives odometry: ``kiss`` (KISS-ICP), ``icp`` (our scan-to-map SVD-ICP)
-    or ``auto`` — KISS-ICP for 3D clouds, our ICP for planar scans. On the whole Intel log the SLAM
-    relation error was 0.044 m with ``icp`` against 0.41 m with ``kiss`` (KISS-ICP loses track in
-    places there), so planar logs default to ``icp``."""
+    or ``auto`` — KISS-ICP for 3D clouds, our ICP for planar scans (KISS-ICP's constant-velocity model
+    loses track of a planar laser where the robot turns in place; measurements in ``docs/ODOMETRY.md``).
+    Every default below is explained there with its evidence."""
 
     method: Literal["auto", "kiss", "icp"] = "auto"
     use_wheel_odometry: bool = True
     icp_point_to_plane: bool = Field(True, description="our ICP odometry: point-to-line/plane steps instead of point-to-point")
-    icp_gates: tuple[float, ...] = Field((0.3,), description="2D, our ICP odometry: correspondence gates (m), coarse to fine, from the wheel guess; whole Intel log (0.5, 0.2) at 1e-4 / (0.3,) at 5e-4: 0.0290 / 0.0288 m, 351 / 260 s CPU")
+    icp_gates: tuple[float, ...] = Field((0.3,), description="2D, our ICP odometry: correspondence gates (m), coarse to fine, from the wheel guess")
     icp_tolerance: float = Field(5e-4, gt=0, description="2D, our ICP odometry: a gate stage ends when the pose increment is below this (m and rad)")
     icp_map_step_m: float = Field(0.0, ge=0, description="our ICP odometry: a scan joins the local map after this much motion (0 = every scan) ...")
     icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
     icp_max_guess_deviation_rad: float | None = Field(0.35, gt=0, description="... or turned this much more; the wheel guess is kept")
-    icp_alternative_start_m: float | None = Field(0.05, gt=0, description="our ICP odometry: when the wheel increment differs by more than this (or the angle below) both from the last estimated increment and from the previous wheel increment (lumpy wheel odometry, MIT CSAIL), ICP also starts from the last increment and the clearly better fit wins")
+    icp_alternative_start_m: float | None = Field(0.05, gt=0, description="our ICP odometry: when the wheel increment differs by more than this (or the angle below) both from the last estimated increment and from the previous wheel increment (wheel odometry logged in lumps), ICP also starts from the last increment and the clearly better fit wins")
     icp_alternative_start_rad: float | None = Field(0.05, gt=0)
     icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
-    icp_wheel_prior_sigma: float | None = Field(None, gt=0, description="our ICP odometry with smooth wheel odometry: the wheel prediction enters each ICP step as a prior with the wheel_sigma_* model below (floors 1 cm, 5 mrad), weighed against point residuals of this σ (m); None = no prior. Freiburg hospital (relations < 10 s apart, odometry alone): none / 0.05 / 0.15 / 0.5 gave 0.0986 / 0.0928 / 0.0834 / 0.0794 m, but the drift over the whole log grew (0.76 → 0.94–1.30 m) and the far return was lost (SLAM 0.80–1.30 m against 0.119 m without): off by default")
+    icp_wheel_prior_sigma: float | None = Field(None, gt=0, description="our ICP odometry with smooth wheel odometry: the wheel prediction enters each ICP step as a prior with the wheel_sigma_* model below (floors 1 cm, 5 mrad), weighed against point residuals of this σ (m); None = no prior (the default: it helps short stretches but lets drift grow, see docs/ODOMETRY.md)")
     unguided_window_m: float | None = Field(1.0, gt=0, description="2D, our ICP odometry without wheel odometry: each scan is first placed by a correlative search of ± this (m, x and y) around the constant-velocity guess on the local map, as far as the robot may stray from constant velocity between two scans; None = ICP from the guess alone")
     unguided_window_deg: float = Field(30.0, gt=0, description="... and ± this in heading (degrees)")
     max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
@@ -45,7 +45,7 @@ class OdometryStageConfig(_Model):
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
     # at the odometry's relative pose (registration.covariance), with this residual σ and gate.
     edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
-    edge_sigma_from_residuals: bool = Field(True, description="scale the edge covariance by max(1, σ̂²/σ²), σ̂ the scan's own residual σ (the a-posteriori variance factor; median σ̂: Freiburg hospital 7 cm, Intel and MIT CSAIL 2.7 cm). Replays of the recorded front ends, together with the wheel calibration and the gate as before: hospital 0.1179 → 0.1102 m, Intel 0.0166 → 0.0164 m, CSAIL 0.0269 m either way")
+    edge_sigma_from_residuals: bool = Field(True, description="scale the edge covariance by max(1, σ̂²/σ²), σ̂ the scan's own residual σ (the a-posteriori variance factor: a long-range sparse laser fits at several times the σ of a short-range one)")
     edge_gate_m: float = Field(0.3, gt=0)
     # Noise floor added to the odometry covariance per keyframe edge: σ² = a + b·distance (translation)
     # and c + d·|angle| (rotation). Registration covariances treat the map as exact and are
@@ -61,10 +61,10 @@ class OdometryStageConfig(_Model):
     wheel_sigma_per_m: float = Field(0.1, gt=0)
     wheel_sigma_rad_per_m: float = Field(0.08, gt=0)
     wheel_sigma_rad_per_rad: float = Field(0.1, gt=0)
-    wheel_sigma_m_per_rad: float = Field(0.15, ge=0, description="translation σ per radian turned (a turn in place moves the base a little: Intel's wheel edges that disagreed with the registration were turns of 17° in place (median) off by 0.029 m sideways, σ ≈ 0.15 m/rad; with 0 the model gave them 1 mm)")
-    wheel_gate_probability: float | None = Field(0.999, gt=0, lt=1, description="a wheel edge whose disagreement with the registration edge exceeds this χ² quantile (Mahalanobis, both covariances) is left out: wheel odometry logged in lumps says 0° over a keyframe the robot turned 40° in (MIT CSAIL); None keeps every wheel edge")
-    wheel_gate_lumpy_only: bool = Field(True, description="... but only when the wheels were lumpy in the interval (the ICP odometry took its constant-velocity start); over smooth wheels the registration slid, and the wheel edge stays. Recorded with the calibration and wheel_sigma_m_per_rad = 0.15: Freiburg hospital 0.1102 → 0.1077 m (its corridor slides keep their wheel edges), Intel 0.0164 → 0.0151 m, MIT CSAIL 0.0269 m; without the turn term Intel's in-place turns became wheel edges 1 mm sure of the base's position (0.0267 m)")
-    wheel_calibration: bool = Field(True, description="scale the wheel model per block (translation, rotation) online so that the wheel-vs-registration disagreement has its expected χ² mean (slam.pipeline.wheel_calibration); the fitted scales are in summary.json (odometry_stats): Freiburg hospital 0.41 / 0.13, Intel 0.33 / 0.90, MIT CSAIL 0.49 / 1.23")
+    wheel_sigma_m_per_rad: float = Field(0.15, ge=0, description="translation σ per radian turned (a turn in place moves the base a little; with 0 the model gives such a turn millimetres)")
+    wheel_gate_probability: float | None = Field(0.999, gt=0, lt=1, description="a wheel edge whose disagreement with the registration edge exceeds this χ² quantile (Mahalanobis, both covariances) is left out: wheel odometry logged in lumps can say 0° over a keyframe the robot turned 40° in; None keeps every wheel edge")
+    wheel_gate_lumpy_only: bool = Field(True, description="... but only when the wheels were lumpy in the interval (the ICP odometry took its constant-velocity start); over smooth wheels the registration slid (a corridor), and the wheel edge stays")
+    wheel_calibration: bool = Field(True, description="scale the wheel model per block (translation, rotation) online so that the wheel-vs-registration disagreement has its expected χ² mean (slam.noise_scale); the fitted scales are in summary.json (odometry_stats)")
     wheel_calibration_min_edges: int = Field(50, ge=1, description="wheel edges before the calibration starts (until then the model as configured)")
 
 
@@ -73,7 +73,7 @@ class BackendConfig(_Model):
 
     kind: Literal["gtsam", "chordal"] = "gtsam"
     isam2_relinearize_threshold: float = Field(0.01, gt=0)
-    isam2_factorization: Literal["cholesky", "qr"] = Field("cholesky", description="iSAM2's linear solver; after the first 'indeterminate system' error the run restarts iSAM2 from a batch solution with QR and keeps it. Cholesky squares the condition number: on the Freiburg hospital's long odometry chain (millimetre wheel edges during turns in place) it failed from keyframe 2349 on, 13 restarts while it stayed Cholesky, and QR factored every later update; QR throughout costs Intel 13.4 s of back end against 9.8 s")
+    isam2_factorization: Literal["cholesky", "qr"] = Field("cholesky", description="iSAM2's linear solver; after the first 'indeterminate system' error the run restarts iSAM2 from a batch solution with QR and keeps it (Cholesky squares the condition number; QR throughout costs about 40 % more back-end time)")
     final_batch: bool = True
     lone_odometry_kernel_sigmas: float | None = Field(3.0, gt=0, description="Cauchy kernel, threshold in σ, on a scan-registration edge of a step no wheel odometry measured (a log without it, or wheel_edges off): a match that slid along a corridor, whose covariance still claims centimetres, then yields to the loop closures; None = no kernel. Steps the wheels measured keep no kernel, even where their wheel edge was left out as lumpy (there the registration was preferred)")
     chordal_every_keyframes: int = Field(50, ge=1, description="chordal back end: batch re-solve period for the online estimate")
