@@ -12,20 +12,30 @@ from slam.pipeline.config import BackendConfig, LoopConfig
 from slam.loops import LoopClosure
 
 
-def square_loop_graph(rounds: int, outliers: list[tuple[int, int, np.ndarray]]) -> tuple[PipelineBackend, np.ndarray]:
-    """40 poses around a 10 m square (exact odometry), true closures between laps, plus *outliers*."""
-    be = PipelineBackend(BackendConfig(kind="gtsam"), LoopConfig(prune_rounds=rounds), planar=True)
+ODO_COV = np.diag([0.02**2, 0.02**2, 0.005**2])
+LC_COV = np.diag([0.01**2, 0.01**2, 0.003**2])
+
+
+def square_laps(laps: int = 2) -> list[np.ndarray]:
+    """Poses every 2 m around a 10 m square (20 per lap), *laps* times, heading along each side."""
     truth = []
-    for k in range(40):
+    for k in range(20 * laps):
         side, f = divmod(k % 20, 5)
         xy = {0: (2.0 * f, 0.0), 1: (10.0, 2.0 * f), 2: (10.0 - 2.0 * f, 10.0), 3: (0.0, 10.0 - 2.0 * f)}[side]
         truth.append(G.xytheta_to_matrix(xy[0], xy[1], side * np.pi / 2))
-    odo_cov = np.diag([0.02**2, 0.02**2, 0.005**2])
+    return truth
+
+
+def square_loop_graph(rounds: int, outliers: list[tuple[int, int, np.ndarray]]) -> tuple[PipelineBackend, np.ndarray]:
+    """40 poses around a 10 m square (exact odometry), true closures between laps, plus *outliers*."""
+    be = PipelineBackend(BackendConfig(kind="gtsam"), LoopConfig(prune_rounds=rounds), planar=True)
+    truth = square_laps()
+    odo_cov = ODO_COV
     for k, T in enumerate(truth):
         be.add_keyframe(k, T)
         if k:
             be.add_odometry(k - 1, k, G.relative(truth[k - 1], T), odo_cov)
-    lc_cov = np.diag([0.01**2, 0.01**2, 0.003**2])
+    lc_cov = LC_COV
     for k in range(0, 20, 2):
         be.add_loop(LoopClosure(k, k + 20, G.relative(truth[k], truth[k + 20]), lc_cov, 1.0, 0.01, "spatial"))
     for i, j, err in outliers:
@@ -118,7 +128,7 @@ def test_relocalise_moves_the_graph_onto_closures_far_beyond_the_robust_kernel()
         be.add_keyframe(k, est)
         be.add_odometry(k - 1, k, z, odo_cov)
     be.update(False)
-    lc_cov = np.diag([0.01**2, 0.01**2, 0.003**2])
+    lc_cov = LC_COV
     for i, j in ((0, n - 3), (1, n - 2), (2, n - 1)):
         be.add_loop(LoopClosure(i, j, G.relative(truth[i], truth[j]), lc_cov, 1.0, 0.01, "global"))
 
@@ -143,13 +153,9 @@ def test_the_map_snaps_back_when_correct_closures_arrive_after_a_wrong_one():
     final solve (Cauchy, then pruning) drops the wrong one and the square comes back within 5 cm of the
     truth: the map is not stuck where the wrong closure put it."""
     be = PipelineBackend(BackendConfig(kind="gtsam"), LoopConfig(), planar=True)
-    truth = []
-    for k in range(40):
-        side, f = divmod(k % 20, 5)
-        xy = {0: (2.0 * f, 0.0), 1: (10.0, 2.0 * f), 2: (10.0 - 2.0 * f, 10.0), 3: (0.0, 10.0 - 2.0 * f)}[side]
-        truth.append(G.xytheta_to_matrix(xy[0], xy[1], side * np.pi / 2))
-    odo_cov = np.diag([0.02**2, 0.02**2, 0.005**2])
-    lc_cov = np.diag([0.01**2, 0.01**2, 0.003**2])
+    truth = square_laps()
+    odo_cov = ODO_COV
+    lc_cov = LC_COV
     wrong = G.xytheta_to_matrix(0.8, -0.5, np.radians(6.0))
     bent = None
     for k, T in enumerate(truth):
@@ -183,13 +189,9 @@ def test_a_lone_odometry_edge_that_slid_yields_to_the_closures(alone):
     yields: the laps come back within 2 cm of the truth and no closure is pruned. Backed by a wheel edge
     (no kernel) the same bad edge spreads its error over the closures and its neighbours instead."""
     be = PipelineBackend(BackendConfig(kind="gtsam"), LoopConfig(), planar=True)
-    truth = []
-    for k in range(40):
-        side, f = divmod(k % 20, 5)
-        xy = {0: (2.0 * f, 0.0), 1: (10.0, 2.0 * f), 2: (10.0 - 2.0 * f, 10.0), 3: (0.0, 10.0 - 2.0 * f)}[side]
-        truth.append(G.xytheta_to_matrix(xy[0], xy[1], side * np.pi / 2))
-    odo_cov = np.diag([0.02**2, 0.02**2, 0.005**2])
-    lc_cov = np.diag([0.01**2, 0.01**2, 0.003**2])
+    truth = square_laps()
+    odo_cov = ODO_COV
+    lc_cov = LC_COV
     be.add_keyframe(0, truth[0])
     for k in range(1, 40):
         z = G.relative(truth[k - 1], truth[k])
