@@ -112,3 +112,21 @@ def test_fused_parallel_edges_add_their_information_and_the_chain_compounds_them
     assert np.allclose(Tc, T_seq) and np.allclose(Sc, S_seq)
     with pytest.raises(ValueError, match="no edge between keyframes 1 and 2"):
         fuse_steps(3, [(0, 1, T, A)])
+
+
+def test_slam_run_says_how_much_of_the_run_the_self_check_could_check(tmp_path, capsys):
+    """The console's self-check line carries the verdict and how many keyframes overlapped another pass and
+    were checked, both as in summary.json: a `consistent` over a handful of keyframes reads as what it is."""
+    import json
+
+    from tests.cli_helpers import corridor_log, slam
+
+    log = tmp_path / "corridor.mcap"
+    corridor_log(log, 300, seed=7)
+    code, out, _ = slam(["run", log, "--out", tmp_path / "run", "--map", "none"], capsys)
+    assert code == 0
+    sc = json.loads((tmp_path / "run" / "summary.json").read_text())["self_check"]
+    keyframes = json.loads((tmp_path / "run" / "summary.json").read_text())["keyframes"]
+    line = next(ln for ln in out.splitlines() if ln.startswith("self_check:"))
+    assert line.startswith(f"self_check: {sc['verdict']} ({sc['keyframes_checked']} of {keyframes} keyframes")
+    assert 0 < sc["keyframes_checked"] <= keyframes

@@ -237,7 +237,9 @@ def run(
         where = "; ".join(f"keyframes {w['first_keyframe']}–{w['last_keyframe']} "
                           f"({w['first_stamp'] - t0:.0f}–{w['last_stamp'] - t0:.0f} s into the log)"
                           for w in sc.get("where", [])[:3])
-        typer.echo(f"self_check: {sc['verdict']}" + (f" ({where})" if sc["verdict"] != "consistent" and where else ""))
+        # How much could be checked: a map whose passes never overlap in the estimate offers nothing to compare.
+        checked = f"{sc.get('keyframes_checked', 0)} of {s['keyframes']} keyframes overlap another pass and were checked"
+        typer.echo(f"self_check: {sc['verdict']} ({checked}" + (f"; contradictions at {where})" if sc["verdict"] != "consistent" and where else ")"))
     typer.echo(f"wall_time_s: {s['wall_time_s']:.2f}")
     for line in s.get("evaluation", []):
         typer.echo(line)
