@@ -63,7 +63,7 @@ class KissSlamPlanarParams(BaseModel):
     """KISS-SLAM settings for an indoor 2D laser (metres, radians); the defaults document each choice.
 
     Attributes:
-        max_range: KISS-ICP crops returns beyond this (m). The Intel SICK returns reach 26.4 m, so
+        max_range: KISS-ICP crops returns beyond this (m). Indoor SICK returns reach ~26 m, so
             30 m keeps every real return (KISS-SLAM's default is 100 m, for outdoor LiDAR).
         min_range: returns closer than this are dropped (m): the robot's own body.
         voxel_size: KISS-ICP local-map voxel (m); its default rule ``max_range / 100`` = 0.3 m is
@@ -87,8 +87,8 @@ class KissSlamPlanarParams(BaseModel):
             which KISS-SLAM's closure ICP (point-to-plane) uses, are then all ±z and constrain
             only z, roll and pitch; a positive value also copies every return to this height (m),
             turning the scan into a vertical wall strip with horizontal normals (keep it below
-            ``local_map_voxel_size`` so both copies share a voxel). Not the benchmark default: on
-            Intel it lets closures be checked, but it did not lower the relation error.
+            ``local_map_voxel_size`` so both copies share a voxel). Not the benchmark default: it lets
+            closures be checked, but it did not lower the relation error.
         use_wheel_odometry: False runs KISS-SLAM as shipped (LiDAR only, constant-velocity
             prediction). True seeds KISS-ICP's prediction with the wheel-odometry step between
             consecutive scans, as our ``registration.odometry.KissOdometry`` does.

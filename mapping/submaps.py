@@ -93,8 +93,8 @@ class SubmapFuser:
     def seal(self, key: Hashable) -> None:
         """Submap *key* will receive no more scans (normally): its grid is stored in float32 from now on.
 
-        Halves the mapping stage's memory (a 24 m submap at 5 cm is 1.8 MB per float64 array; Intel
-        has 255 submaps). Values change by < 1e-7 relative. The submap is taken off the global grid
+        Halves the mapping stage's memory (a 24 m submap at 5 cm is 1.8 MB per float64 array, and a
+        building-sized log has hundreds of submaps). Values change by < 1e-7 relative. The submap is taken off the global grid
         first and re-placed from the float32 values, so what is later subtracted is exactly what was
         added."""
         sm = self.submaps[key]
@@ -133,8 +133,8 @@ class SubmapFuser:
         sel, local = sel[keep], local[keep]
         w = cols.stop - cols.start
         g = (rows.start + sel // w) * self.geometry.shape[1] + cols.start + sel % w
-        # 8 bytes per placed cell, not 24 (indices and two float64 values): the Freiburg hospital's
-        # 355 submaps held 0.65 GB of placed values.
+        # 8 bytes per placed cell, not 24 (indices and two float64 values): a few hundred submaps
+        # hold most of a gigabyte of placed values otherwise.
         return g.astype(np.int32 if self.info.size < 2**31 else np.int64), local
 
     def _add(self, sm: Submap, sign: float) -> None:

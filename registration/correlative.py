@@ -108,7 +108,7 @@ def likelihood_field(cells: NDArray[np.int64], shape: tuple[int, int], resolutio
 def angular_step(points: Array, resolution: float) -> float:
     """Rotation step that moves the farthest point (95th percentile range) by at most one cell (Hess et al. 2016, Eq. 7)."""
     rng = np.hypot(points[:, 0], points[:, 1])
-    # np.percentile's linear interpolation, from a partial sort (the full call costs ~0.1 ms, ×8000 on Intel)
+    # np.percentile's linear interpolation, from a partial sort (the full call costs ~0.1 ms, paid for every one of thousands of candidates)
     pos = 0.95 * (len(rng) - 1)
     lo = int(pos)
     hi = min(lo + 1, len(rng) - 1)

@@ -5,7 +5,7 @@ correlative scorer.
 Each kernel is the loop form of a numpy implementation that stays in the package as its reference
 and for 3D (``registration.point_to_plane``, ``registration.correlative``); tests check that both
 agree. They exist because a 2D laser scan has ~200 points, where numpy's per-call overhead, not
-arithmetic, set the cost: on the whole Intel log the loop-closure ICPs took ~4.8 ms each.
+arithmetic, set the cost (measurements in ``benchmarks/registration.py``).
 
 Grid index: points bucketed into square cells of side ``cell`` (m) by a counting sort; cell (i, j)
 holds ``order[starts[i·ny + j] : starts[i·ny + j + 1]]``. A search visits square rings of cells
@@ -28,7 +28,7 @@ Array = NDArray[np.float64]
 
 __all__ = ["PointGrid", "plane_icp_2d", "nearest_within", "normals_2d", "score_candidates", "compile_all"]
 
-# Grids larger than this many cells get coarser cells (a far Freiburg-hospital target spans ~160 m).
+# Grids larger than this many cells get coarser cells (a far target of a long-range laser spans ~160 m).
 _MAX_CELLS = 4_000_000
 
 

@@ -223,7 +223,7 @@ class IcpOdometry(Odometry):
 
         The second test keeps smooth wheel odometry in charge: after an ICP slide along a corridor the
         last increment disagrees with the wheels too, and starting from it again fed the slide
-        (Freiburg hospital, t ≈ 3491 s: 0.58 m per scan against 0.20 m of wheel odometry)."""
+        (docs/ODOMETRY.md has the measured case)."""
         c = self.config
         prev_wheel, self._prev_wheel = self._prev_wheel, None
         if not self._wheel_guided(frame) or (c.alternative_start_m is None and c.alternative_start_rad is None):
@@ -352,8 +352,7 @@ class IcpOdometry(Odometry):
             pose = _planar(pose)
         if guided and res is not None and self._too_far(guess, pose):
             # ICP left the basin of its own start. Judged against either start, a slide along a
-            # corridor passed and fed the next constant-velocity start (Freiburg hospital,
-            # t ≈ 3491 s: 0.58 m per scan against 0.20 m of wheel odometry).
+            # corridor passed and fed the next constant-velocity start (docs/ODOMETRY.md).
             pose, cov, accepted = guess, None, False
         moved = geo.relative(self._map_pose, pose)
         turned = geo.rotation_angle(moved[:3, :3])

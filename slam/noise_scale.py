@@ -9,8 +9,8 @@ filtering", IEEE TAC 17(5), 1972, §IV). The mean, not the median, of the statis
 heavy-tailed, and the median fits scales that are too small.
 
 Used for the wheel-odometry model against the scan registration, one innovation per keyframe interval
-(:class:`slam.pipeline.frontend.FrontEnd`): the Freiburg hospital's wheels agree with its scans ~7×
-better in heading than Intel's or MIT CSAIL's, and one generic wheel model cannot say so.
+(:class:`slam.pipeline.frontend.FrontEnd`): robots' wheels agree with their scans up to ~7× better
+in heading on one robot than on another (docs/ODOMETRY.md), and one generic wheel model cannot say so.
 """
 
 from __future__ import annotations

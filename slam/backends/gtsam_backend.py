@@ -281,8 +281,8 @@ class IncrementalSmoother:
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = relinearize_skip
         # "qr" where Cholesky fails: it squares the condition number, and on a long odometry chain with
-        # millimetre wheel edges (Freiburg hospital, keyframe 2349 of 3549) GTSAM declared the system
-        # indeterminate; QR factors the same chain (a little slower with many loop closures).
+        # millimetre wheel edges GTSAM can declare the system indeterminate; QR factors the same chain
+        # (a little slower with many loop closures; docs/ODOMETRY.md).
         params.setFactorization(factorization.upper())
         self._isam = gtsam.ISAM2(params)
         self._new_factors = gtsam.NonlinearFactorGraph()

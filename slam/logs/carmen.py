@@ -17,7 +17,7 @@ Format: one message per line, ``TAG field … ipc_timestamp ipc_hostname logger_
 Frames of reference and units: ranges and points in metres in the **laser** frame (x forward);
 ``Frame.odom`` is the robot pose ``odom_T_base`` from the laser line's robot-pose fields;
 ``Frame.base_T_sensor = odom_T_base⁻¹ · odom_T_laser`` from the two poses on the same line
-(identity for Intel/CSAIL, 0.04 m ahead for fr079). The stamp is the ``ipc_timestamp`` (seconds),
+(identity on many logs, a few centimetres ahead on others). The stamp is the ``ipc_timestamp`` (seconds),
 the one the Kümmerle relations refer to.
 
 Beams at or beyond the max range (81.83 / 81.91 saturation values in the benchmark logs) or
@@ -539,8 +539,8 @@ def detect_saturation(ranges: np.ndarray, min_fraction: float = 0.002, floor: fl
     """The max-range code of a laser (m) if the readings saturate at one value, else None.
 
     Heuristic: the largest reading counts as a saturation code when at least *min_fraction* of
-    all beams lie within 0.1 m below it and it is beyond *floor* metres (the Intel log's 81.83,
-    CSAIL's 81.91). The returned threshold is 0.1 m below that value.
+    all beams lie within 0.1 m below it and it is beyond *floor* metres (SICK lasers logged through
+    CARMEN report about 81.8–81.9 m). The returned threshold is 0.1 m below that value.
     """
     r = np.asarray(ranges, dtype=float)
     r = r[np.isfinite(r)]
@@ -825,7 +825,7 @@ class CarmenReader(LogReader):
         for fr in self._stream(counts, odom_fields):
             scans += 1
             beams = max(beams, int(fr.ranges.shape[0]))
-            # min/max, not first/last: the Intel log's ipc_timestamps step back 631 times
+            # min/max, not first/last: ipc_timestamps may step back (hundreds of times in one benchmark log)
             if start is None or fr.stamp < start:
                 start = fr.stamp
             if end is None or fr.stamp > end:

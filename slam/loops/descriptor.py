@@ -76,7 +76,7 @@ def shift_distances(query: Array, candidates: Array) -> Array:
     Fm = np.fft.irfft(np.fft.rfft(qmask)[None] * np.conj(np.fft.rfft(cmask, axis=-1)), n=q.shape[1], axis=-1)
     # Average over the columns non-empty in either: a column only one scan fills counts as distance 1.
     # (Averaging over the columns non-empty in both, a 180° scan shifted by ~180° overlaps the other
-    # in one or two columns and scores ≈ 0 against any place: on MIT CSAIL nearly every query did.)
+    # in one or two columns and scores ≈ 0 against any place: with a 180° laser nearly every query did.)
     both = np.rint(Fm)
     union = np.maximum(qmask.sum() + cmask.sum(axis=1)[:, None] - both, 1.0)
     return 1.0 - corr / union

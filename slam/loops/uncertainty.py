@@ -2,9 +2,10 @@
 
 A loop candidate's relative pose is only as certain as the chain of constraints that links it to
 the new keyframe. "The uncertainty accumulated since the last closure" is that chain only when the
-last closure was with the candidate's own pass: on Intel the robot, just closed with its previous
-pass down a corridor, met the corridor's first pass (300 keyframes earlier) 1.2 m away from where
-the estimate put it, with a since-closure σ of 3 cm, and every correct closure was gated out.
+last closure was with the candidate's own pass: a robot just closed with its previous pass down a
+corridor can meet the corridor's first pass, hundreds of keyframes older, a metre away from where the
+estimate puts it, with a since-closure σ of centimetres, and every correct closure is gated out
+(the measured case is in docs/LOOP_CLOSURE.md).
 
 Here the chain is the most certain path in the graph of odometry, wheel and loop edges (Dijkstra,
 as in the "graph distance" candidate gating of Olson 2009 and Bosse's Atlas), with the edge weight

@@ -11,7 +11,7 @@
 4. For an alignment the acceptance stage holds pending, local uniqueness: no pose elsewhere within
    three floor windows of the match, at any heading, may score within ``ambiguity_ratio`` of it (the
    ratio test of place recognition); a corridor whose matches slide along it, doors repeating along
-   it, or a corridor that looks the same turned round (MIT Killian: groups of matches 180° off) fail
+   it, or a corridor that looks the same turned round (groups of matches 180° off) fail
    it. Farther aliases (the same corridor elsewhere in the map) are left to the group test.
 
 *The keyframe's own registration* (:class:`Reference`) is what a true match of this scan looks like:

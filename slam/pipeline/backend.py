@@ -89,10 +89,10 @@ class PipelineBackend:
                 self._smoother.update()
             except RuntimeError:
                 # GTSAM's "indeterminant linear system": iSAM2's incremental factorisation can lose
-                # definiteness numerically (seen on the Freiburg hospital log at keyframe 2350, with
-                # every edge finite and well conditioned). Recover: batch-solve the whole graph and
-                # restart iSAM2 from that solution, with QR from now on (it does not square the
-                # condition number; Cholesky failed again 12 times on that log).
+                # definiteness numerically (with every edge finite and well conditioned: a long chain
+                # of millimetre wheel edges in turns in place). Recover: batch-solve the whole graph
+                # and restart iSAM2 from that solution, with QR from now on (it does not square the
+                # condition number; Cholesky kept failing there, docs/ODOMETRY.md).
                 self._factorization = "qr"
                 self._restart_smoother()
                 loop_added = True

@@ -4,8 +4,8 @@ The front end (per-scan odometry, keyframe selection, odometry edges) never look
 it can run ahead in a second process while this one closes loops, updates iSAM2 and maps — the split
 of tracking from mapping and loop closing in PTAM (Klein & Murray, ISMAR 2007) and ORB-SLAM (Mur-Artal et al.,
 T-RO 2015, §III), and of Cartographer's local from its global SLAM. Keyframes come back in order and
-the back half consumes them in the same order as inline, so both give identical results; on Intel
-the ~50 s of odometry then overlap the loop closure instead of adding to it.
+the back half consumes them in the same order as inline, so both give identical results; the odometry's
+time then overlaps the loop closure instead of adding to it.
 
 Both kinds share one interface: :meth:`submit` a frame, take the keyframes :meth:`ready` so far,
 :meth:`finish` for the rest and a :class:`FrontEndSummary`.

@@ -119,9 +119,9 @@ class FrontEnd:
         frame), with and without the a-posteriori variance factor, or None when it cannot be evaluated.
 
         The factor is max(1, σ̂²/σ²), σ̂² = Σe²/(n − dof) of the plane residuals (the unit-weight
-        variance of least squares): the Freiburg hospital's long, sparse ranges fit at σ̂ ≈ 7 cm
-        (median) where Intel's and MIT CSAIL's fit at 2.7 cm, and the fixed σ = 2 cm made its edges
-        ~12× too confident in variance against its wheels."""
+        variance of least squares): long, sparse ranges fit at several times the σ̂ of short, dense
+        ones, and a fixed σ = 2 cm made such edges ~12× too confident in variance against the wheels
+        (docs/ODOMETRY.md)."""
         c = self.config.odometry
         if len(prev.points) < 10 or len(kf.points) < 10:
             return None
@@ -158,7 +158,7 @@ class FrontEnd:
         """χ² test of the wheel edge against the registration edge over the same keyframe interval:
         dᵀ (Σ_edge + Σ_wheel)⁻¹ d ≤ the ``wheel_gate_probability`` quantile, with the a-priori
         registration covariance and the uncalibrated wheel model (the gate looks for faults, and
-        with the a-posteriori covariance it let Intel's lumps through: 0.0164 → 0.0192 m)."""
+        with the a-posteriori covariance it let wheel lumps through; docs/ODOMETRY.md)."""
         p = self.config.odometry.wheel_gate_probability
         if p is None:
             return True
@@ -174,7 +174,7 @@ class FrontEnd:
         Left out when it fails the χ² test against the registration edge and the wheels were lumpy
         in the interval (``wheel_gate_lumpy_only``; the odometry took its constant-velocity start at
         some scan): over smooth wheels the disagreement is the registration's, a slide along a
-        corridor (Freiburg hospital t ≈ 2000–2060 s: ±0.25 m on 0.2 m steps), and the wheel edge is
+        corridor (±0.25 m on 0.2 m steps in the measured case, docs/ODOMETRY.md), and the wheel edge is
         what holds the chain. Edges that pass the test are the calibration's samples."""
         c = self.config.odometry
         wrel = G.relative(prev.frame.odom, kf.frame.odom)
