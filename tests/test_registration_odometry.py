@@ -285,29 +285,17 @@ def test_wheel_prior_holds_icp_odometry_in_a_featureless_corridor():
     assert worst[None] > 0.01
 
 
-def _room_scans(sim, xyt: list[tuple[float, float, float]], seed: int) -> list[Frame]:  # type: ignore[no-untyped-def]
-    """Simulated laser scans (1 cm range noise) of the test room from the poses *xyt*, 0.1 s apart, no wheels."""
-    from tests.loop_scenes import LASER, room
-
-    R = sim.cast_rays(room(), np.array(xyt), LASER, rng=np.random.default_rng(seed), range_noise=0.01)
-    ang = LASER.angles()
-    frames = []
-    for k, r in enumerate(R):
-        ok = np.isfinite(r)
-        frames.append(Frame(0.1 * k, np.column_stack([r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])]), index=k))
-    return frames
-
-
 def test_without_wheels_a_correlative_search_places_scans_the_constant_velocity_guess_misses():
     """Scans of a path that stops, turns 25° and starts again (as in logs that kept only some scans): the
     constant-velocity guess is 0.4 m / 25° off at the stop and the turn, beyond ICP's 0.3 m gate, and
     ICP alone ends far from the truth; with the correlative search of ±1 m / ±30° first it ends within
     5 cm and 1° (Olson 2009's scan-to-map matching without odometry)."""
-    sim = pytest.importorskip("evaluation.sim")
+    from tests.loop_scenes import keyframes, room
+
     xyt = [(2.0 + 0.4 * k, 3.0, 0.0) for k in range(6)] + [(4.0, 3.0, np.radians(25.0))]
     xyt += [(4.0 + 0.4 * k * np.cos(np.radians(25.0)), 3.0 + 0.4 * k * np.sin(np.radians(25.0)), np.radians(25.0))
             for k in range(1, 8)]
-    frames = _room_scans(sim, xyt, seed=4)
+    frames = [kf.frame for kf in keyframes(room(), xyt, seed=4)]
     truth = geo.relative(geo.xytheta_to_matrix(*xyt[0]), geo.xytheta_to_matrix(*xyt[-1]))
     errors = {}
     for window in (None, 1.0):
@@ -326,11 +314,12 @@ def test_without_wheels_a_turn_beyond_the_window_is_found_by_the_escalated_searc
     0.5 rad turned, and a log may skip more): beyond the ±30° window the best pose scores poorly, below
     0.8 of the recent scans' median, so the search is repeated at every heading over ±2 m and the path
     ends within 5 cm and 1°; without the escalation it does not."""
-    sim = pytest.importorskip("evaluation.sim")
+    from tests.loop_scenes import keyframes, room
+
     turn = np.radians(70.0)
     xyt = [(2.0 + 0.3 * k, 3.0, 0.0) for k in range(8)] + [(4.1, 3.0, turn)]
     xyt += [(4.1 + 0.3 * k * np.cos(turn), 3.0 + 0.3 * k * np.sin(turn), turn) for k in range(1, 6)]
-    frames = _room_scans(sim, xyt, seed=5)
+    frames = [kf.frame for kf in keyframes(room(), xyt, seed=5)]
     truth = geo.relative(geo.xytheta_to_matrix(*xyt[0]), geo.xytheta_to_matrix(*xyt[-1]))
     errors, escalations = {}, {}
     for escalation in (None, 0.8):
