@@ -47,12 +47,21 @@ def overlap_radius(kf: Keyframe, config: LoopConfig) -> float:
 
 def windows(uncertainty: NodeUncertainty, config: LoopConfig, planar: bool) -> tuple[Array, Array, Array]:
     """Per keyframe: the search window half-widths (m, rad) and the per-axis position σ (m), from its
-    uncertainty relative to the new keyframe (``window_sigmas`` σ, at least the floors)."""
+    uncertainty relative to the new keyframe (``window_sigmas`` σ, at least the floors).
+
+    The heading-rate term of the uncertainty (:mod:`slam.loops.uncertainty`) widens a spatial window up
+    to ``max_window_m`` but never past it: which places are left to the global search, and in which
+    order, is decided by the independent edge noise (:func:`global_places`), so that a term that grows
+    with every metre of path does not dilute the global search's budget over places it could not reach
+    before."""
     d, r = (2, 1) if planar else (3, 3)
-    sd_xy = np.sqrt(uncertainty.position_var / d)
-    sd_th = np.sqrt(uncertainty.rotation_var / r)
     k = config.window_sigmas
-    win_xy = np.maximum(k * sd_xy, config.window_floor_m)
+    noise = uncertainty.without_drift()
+    win_noise = np.maximum(k * np.sqrt(noise.position_var / d), config.window_floor_m)
+    sd_xy = np.sqrt(uncertainty.position_var / d)
+    win_xy = np.where(win_noise > config.max_window_m, win_noise,
+                      np.minimum(np.maximum(k * sd_xy, config.window_floor_m), config.max_window_m))
+    sd_th = np.sqrt(uncertainty.rotation_var / r)
     win_th = np.minimum(np.maximum(k * sd_th, np.radians(config.window_floor_deg)), np.pi)
     return win_xy, win_th, sd_xy
 
@@ -126,7 +135,7 @@ def global_places(poses: Array, j: int, uncertainty: NodeUncertainty, config: Lo
     if last <= 0:
         return np.zeros(0, dtype=np.int64)
     ids = np.arange(0, last, max(1, spacing))
-    win_xy, _, sd = windows(uncertainty, config, planar)
+    win_xy, _, sd = windows(uncertainty.without_drift(), config, planar)
     dist = np.linalg.norm(poses[ids, :2, 3] - poses[j, :2, 3], axis=1)
     return ids[(win_xy[ids] > config.max_window_m) & (dist <= radius_m + config.window_sigmas * sd[ids])]
 

@@ -157,6 +157,7 @@ class LoopCloser:
         in the last ``global_every_keyframes`` × (places within reach) keyframes — so that every place is
         searched once before any is searched again."""
         c = self.config
+        uncertainty = uncertainty.without_drift()  # the global search's reach and order (see candidates.windows)
         places = C.global_places(poses, j, uncertainty, c, self.planar, radius, self.global_half)
         if len(places) == 0:
             return

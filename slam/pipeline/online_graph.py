@@ -31,7 +31,8 @@ class OnlineGraph:
         self.planar = planar
         # Every edge's covariance: each keyframe's uncertainty relative to the new one sizes its search
         # (tracked up to 100 m σ; beyond, a place is out of reach of any search).
-        self.uncertainty = RelativeUncertainty(planar, limit_m2=100.0**2)
+        self.uncertainty = RelativeUncertainty(planar, limit_m2=100.0**2,
+                                               drift_rad_per_m=float(np.radians(loops.heading_drift_deg_per_m)))
         self.closer = LoopCloser(loops, planar, self.uncertainty)
         self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
 
@@ -46,10 +47,11 @@ class OnlineGraph:
         else:
             be.add_keyframe(kf.id, be.poses[edge.i] @ edge.measurement)
             be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance, alone=not edge.wheels)
-            self.uncertainty.add_edge(edge.i, edge.j, edge.covariance)
+            d = 2 if self.planar else 3
+            self.uncertainty.add_edge(edge.i, edge.j, edge.covariance, float(np.linalg.norm(edge.measurement[:d, 3])))
             if wheel is not None:
                 be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
-                self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance)
+                self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance, float(np.linalg.norm(wheel.measurement[:d, 3])))
         t1 = time.perf_counter()
         poses = be.poses
         unc = self.uncertainty.from_node(kf.id, poses[:, : (2 if self.planar else 3), 3])
