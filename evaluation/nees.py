@@ -11,6 +11,10 @@ and Navigation*, 2001, §5.4.2). For a consistent covariance NEES/dof averages 1
 above, the covariance is overconfident (search windows too small, closures over-trusted); below, it is
 conservative.
 
+The chain model may add the loop closer's random-constant heading rate (:mod:`slam.loops.uncertainty`): a
+rate b ~ N(0, σ_b²) per metre turns step k by b·ℓ_k (ℓ_k its length), common to all steps, so it adds the
+rank-one ``σ_b² u uᵀ`` with ``u = Σ_k Ad(C_b⁻¹ C_k) (0, 0, ℓ_k)`` to the chain's covariance.
+
 Relations between scans that are not keyframes are carried to the keyframes before them with the
 front end's own per-scan odometry (its error over those few scans is not in the chain's covariance).
 
@@ -92,31 +96,41 @@ class Chain:
     With right perturbations, ``T_ab = Π_{k=a+1..b} μ_k Exp(ξ_k)`` gives ``Σ_ab = Ad(C_b)⁻¹ (S_b − S_a) Ad(C_b)⁻ᵀ``
     where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``."""
 
-    def __init__(self, mu: Array, cov: Array) -> None:
+    def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0) -> None:
         K = len(mu)
+        self.drift = float(drift_rad_per_m)
         self.C = np.zeros((K, 4, 4))
         self.C[0] = np.eye(4)
         self.S = np.zeros((K, 3, 3))
+        self.J = np.zeros((K, 3))  # J_k = Σ_{m ≤ k} Ad(C_m) (0, 0, ℓ_m): the heading rate's prefix
         for k in range(1, K):
             self.C[k] = self.C[k - 1] @ mu[k]
             A = G.adjoint(self.C[k], planar=True)
             self.S[k] = self.S[k - 1] + A @ cov[k] @ A.T
+            self.J[k] = self.J[k - 1] + A[:, 2] * float(np.linalg.norm(mu[k][:2, 3]))
 
     def relative(self, a: int, b: int) -> tuple[Array, Array]:
         """``a_T_b`` along the chain and its covariance (a ≤ b)."""
         Ainv = np.linalg.inv(G.adjoint(self.C[b], planar=True))
-        return G.relative(self.C[a], self.C[b]), Ainv @ (self.S[b] - self.S[a]) @ Ainv.T
+        S = Ainv @ (self.S[b] - self.S[a]) @ Ainv.T
+        if self.drift > 0.0:
+            u = Ainv @ (self.J[b] - self.J[a])
+            S = S + self.drift**2 * np.outer(u, u)
+        return G.relative(self.C[a], self.C[b]), S
 
 
 def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
-               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array) -> Array:
+               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0) -> Array:
     """Per relation ``(scan a, scan b)`` with true ``a_T_b`` *truth*: rows (chain length in keyframes, NEES/dof,
-    translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad).
+    translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad, odometry
+    path length between the keyframes m).
 
     *mu*, *cov*: :func:`fuse_steps`; *keyframe_of_scan*: the last keyframe at or before each scan;
     *scan_odometry* ``(N, 4, 4)`` and *keyframe_odometry* ``(K, 4, 4)``: the front end's odometry poses,
-    which carry each scan to its keyframe. Relations within one keyframe interval are left out."""
-    chain = Chain(mu, cov)
+    which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate (0: none). Relations
+    within one keyframe interval are left out."""
+    chain = Chain(mu, cov, drift_rad_per_m)
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]  # odometry path length at each keyframe
     rows = []
     for (sa, sb), delta in zip(pairs, truth):
         if sa > sb:
@@ -132,8 +146,46 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
         S = AdB @ S @ AdB.T
         e = G.se2_log(G.relative(delta, est))
         rows.append((kb - ka, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
-                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2]))))
-    return np.array(rows, dtype=float).reshape(-1, 6)
+                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[kb] - path[ka])))
+    return np.array(rows, dtype=float).reshape(-1, 7)
+
+
+#: Path-length bins (m) of :func:`heading_by_path`.
+PATH_EDGES_M = (50.0, 100.0, 200.0, 400.0, 800.0, np.inf)
+
+
+@dataclass(frozen=True)
+class HeadingBin:
+    """Relations whose chains run ``lo_m`` … ``hi_m`` metres of odometry: how many, the median and 95th
+    percentile of the absolute heading error (°) and of its rate per metre of path, and the chain's
+    median predicted heading σ (°). A rate that stays constant as the path grows is drift the
+    independent edge noise cannot represent (:mod:`slam.loops.uncertainty`)."""
+
+    lo_m: float
+    hi_m: float
+    n: int
+    error_median_deg: float
+    error_p95_deg: float
+    rate_median_deg_per_m: float
+    rate_p95_deg_per_m: float
+    sigma_median_deg: float
+
+    def as_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in vars(self).items()}
+
+
+def heading_by_path(rows: Array, edges: tuple[float, ...] = PATH_EDGES_M, min_n: int = 3) -> list[HeadingBin]:
+    """:class:`HeadingBin` per path-length bin of :func:`chain_nees` rows (bins of fewer than *min_n* left out)."""
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        r = rows[(rows[:, 6] >= lo) & (rows[:, 6] < hi)]
+        if len(r) < min_n:
+            continue
+        err = np.degrees(r[:, 3])
+        rate = err / r[:, 6]
+        out.append(HeadingBin(float(lo), float(hi), len(r), float(np.median(err)), float(np.percentile(err, 95)),
+                              float(np.median(rate)), float(np.percentile(rate, 95)), float(np.degrees(np.median(r[:, 5])))))
+    return out
 
 
 def bin_by_length(rows: Array, edges: tuple[int, ...] = BIN_EDGES) -> list[NeesBin]:

@@ -128,3 +128,65 @@ def test_matches_a_plain_dijkstra_whatever_order_the_edges_arrive_in():
                 heapq.heappush(heap, (dist[b], b))
     np.testing.assert_allclose(got.position_var, dist, rtol=1e-12)
     np.testing.assert_allclose(got.rotation_var, rot, rtol=1e-9, atol=1e-15)
+
+
+# ---------------------------------------------------------------------- the random-constant heading rate
+def _drift_chain(n: int, rate: float) -> tuple[RelativeUncertainty, np.ndarray]:
+    """Keyframes 0 … n one metre apart along x, edges without noise of their own, a heading rate σ *rate*."""
+    u = RelativeUncertainty(True, limit_m2=1e6, drift_rad_per_m=rate)
+    for k in range(n):
+        u.add_edge(k, k + 1, np.zeros((3, 3)), length_m=1.0)
+    pos = np.zeros((n + 1, 2))
+    pos[:, 0] = np.arange(n + 1)
+    return u, pos
+
+
+def test_a_heading_rate_grows_the_rotation_sigma_with_the_path_not_its_square_root():
+    n, rate = 200, np.radians(0.015)
+    u, pos = _drift_chain(n, rate)
+    unc = u.from_node(n, pos)
+    k = np.arange(n + 1)
+    np.testing.assert_allclose(np.sqrt(unc.rotation_var), rate * (n - k), rtol=1e-9, atol=1e-12)
+    # Lever-weighted length from keyframe k: Σ over its n − k edges of the centre's distance to keyframe n.
+    moment = 0.5 * (n - k) ** 2
+    np.testing.assert_allclose(unc.position_var, 2 * (rate * moment) ** 2 + 1e-12 * (n - k), rtol=1e-9)  # Dijkstra adds 1e-12 per edge
+    np.testing.assert_allclose(unc.drift_rotation_var, unc.rotation_var)
+    noise = unc.without_drift()
+    np.testing.assert_allclose(noise.position_var, 0.0, atol=1e-9)
+    # The short-stretch variance of the pairwise closure test carries the same term.
+    v = RelativeUncertainty(True, drift_rad_per_m=rate)
+    for q in range(n):
+        v.add_edge(q, q + 1, np.diag([1e-6, 1e-6, 1e-8]), length_m=1.0)
+    assert v.chain_variance(0, n, pos)[1] == pytest.approx(n * 1e-8 + (rate * n) ** 2)
+
+
+def test_the_heading_rate_bounds_a_sampled_constant_rate_on_every_axis():
+    """Monte Carlo of the model itself: a chain of 1 m steps turned by a rate b ~ N(0, σ²) per metre. The
+    predicted per-axis variance (position trace / 2) is the sampled variance of the worse axis to first
+    order (within the sampling error of 4000 draws and the edge-centre lever arm's half step)."""
+    n, rate = 60, 0.002
+    u, pos = _drift_chain(n, rate)
+    predicted = u.from_node(n, pos).position_var[0] / 2
+    rng = np.random.default_rng(3)
+    ends = []
+    for b in rng.normal(0.0, rate, 4000):
+        T = np.eye(4)
+        for _k in range(n):
+            T = T @ G.xytheta_to_matrix(1.0, 0.0, b)
+        ends.append(G.inverse(T)[:2, 3])  # keyframe 0 seen from keyframe n
+    worst = float(np.max(np.var(np.array(ends), axis=0)))
+    assert 0.9 * worst < predicted < 1.1 * worst
+
+
+def test_a_closure_resets_the_heading_rate():
+    n, rate = 100, np.radians(0.015)
+    u = RelativeUncertainty(True, limit_m2=1e6, drift_rad_per_m=rate)
+    for k in range(n):
+        u.add_edge(k, k + 1, np.diag([1e-4, 1e-4, 1e-5]), length_m=1.0)
+    pos = np.column_stack([10.0 * np.cos(np.linspace(0, 2 * np.pi, n + 1)), 10.0 * np.sin(np.linspace(0, 2 * np.pi, n + 1))])
+    u.add_edge(0, n, np.diag([1e-4, 1e-4, 1e-6]))  # a closure: no odometry length
+    unc = u.from_node(n, pos)
+    assert unc.drift_rotation_var[0] == 0.0 and unc.rotation_var[0] == pytest.approx(1e-6)
+    # Keyframe 5 is reached through the closure and five one-metre edges: their drift only.
+    assert unc.drift_rotation_var[5] == pytest.approx((5 * rate) ** 2)
+    assert unc.rotation_var[5] == pytest.approx(1e-6 + 5e-5 + (5 * rate) ** 2)

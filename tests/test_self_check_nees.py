@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps
+from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps, heading_by_path
 from registration import geometry as G
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, self_check
@@ -130,3 +130,44 @@ def test_slam_run_says_how_much_of_the_run_the_self_check_could_check(tmp_path, 
     line = next(ln for ln in out.splitlines() if ln.startswith("self_check:"))
     assert line.startswith(f"self_check: {sc['verdict']} ({sc['keyframes_checked']} of {keyframes} keyframes")
     assert 0 < sc["keyframes_checked"] <= keyframes
+
+
+def test_a_heading_rate_in_the_odometry_is_consistent_only_with_the_drift_term():
+    """Chains whose steps are all turned by one rate b ~ N(0, σ_b²) per metre, besides their independent
+    noise: without the term the long chains' NEES/dof is far above 1 (the rate's error grows with the path,
+    the edges' σ with its square root); with it, every bin averages 1 within its sampling error."""
+    rng = np.random.default_rng(7)
+    K, rate = 400, np.radians(0.05)
+    cov = np.diag([0.01**2, 0.005**2, np.radians(0.1) ** 2])
+    with_term, without = [], []
+    for _chain in range(60):
+        truth, edges = _noisy_chain(rng, K, cov)
+        b = rng.normal(0.0, rate)
+        tilted = [(i, j, T @ G.xytheta_to_matrix(0.0, 0.0, b * np.linalg.norm(T[:2, 3])), S) for i, j, T, S in edges]
+        mu, C = fuse_steps(K, tilted)
+        pairs = np.array([(a, a + L) for L in (1, 4, 20, 100, 350) for a in range(0, K - L, max(1, L))])
+        args = (mu, C, np.arange(K), truth, truth, pairs, G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]]))
+        with_term.append(chain_nees(*args, drift_rad_per_m=rate))
+        without.append(chain_nees(*args))
+    binned = bin_by_length(np.concatenate(with_term))
+    plain = {b.lo: b for b in bin_by_length(np.concatenate(without))}
+    for b in binned:
+        # 60 independent rates: the bins of long chains average 60 χ²(3)/3 at most (pairs share their rate).
+        assert b.nees_mean == pytest.approx(1.0, rel=0.45), b
+    assert plain[301].nees_mean > 2.0 and plain[31].nees_mean > 1.3 and plain[1].nees_mean == pytest.approx(binned[0].nees_mean, rel=0.05)
+
+
+def test_a_constant_heading_rate_reads_back_from_the_heading_table_at_every_path_length():
+    rng = np.random.default_rng(2)
+    K, rate_deg = 3000, 0.05
+    cov = np.diag([1e-8, 1e-8, 1e-10])
+    truth, edges = _noisy_chain(rng, K, cov)
+    tilted = [(i, j, T @ G.xytheta_to_matrix(0.0, 0.0, np.radians(rate_deg) * np.linalg.norm(T[:2, 3])), S) for i, j, T, S in edges]
+    mu, C = fuse_steps(K, tilted)
+    pairs = np.array([(a, a + L) for L in (300, 600, 1200, 2400) for a in range(0, K - L, 97)])
+    rows = chain_nees(mu, C, np.arange(K), truth, truth, pairs, G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]]))
+    bins = heading_by_path(rows)
+    assert [b.lo_m for b in bins] == [50.0, 100.0, 200.0, 400.0]  # steps of 0.25 m: 75, 150, 300, 600 m
+    for b in bins:
+        assert b.rate_median_deg_per_m == pytest.approx(rate_deg, rel=0.05), b
+        assert b.error_median_deg == pytest.approx(rate_deg * np.median(rows[(rows[:, 6] >= b.lo_m) & (rows[:, 6] < b.hi_m), 6]), rel=0.05)

@@ -196,6 +196,7 @@ def nees_cmd(
     run: Path = typer.Argument(..., help="A slam run folder (graph.g2o, node_stamps.txt, odometry.tum)."),
     relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
+    heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
     json_out: Path | None = _JSON,
 ) -> None:
     """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations, per chain
@@ -203,7 +204,7 @@ def nees_cmd(
     _check_json(json_out)
     import numpy as np
 
-    from evaluation.nees import bin_by_length, chain_nees, fuse_steps
+    from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
     from evaluation.relations import read_relations
     from evaluation.trajectory import nearest_indices
     from registration.errors import InputFileError
@@ -237,15 +238,41 @@ def nees_cmd(
     if not keep:
         raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
     pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
-    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep])
+    if heading_drift is None:
+        heading_drift = _run_heading_drift(run)
+    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)))
     bins = bin_by_length(rows)
-    typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)})")
+    typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
+               f"heading rate σ {heading_drift:g} °/m")
     typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
     for b in bins:
         span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
         typer.echo(f"{span:>12} {b.n:>6} {b.nees_mean:>9.3f} {b.nees_median:>8.3f} {b.rms_translation_m:>8.4f} "
                    f"{b.sigma_translation_m:>8.4f} {b.rms_rotation_deg:>8.3f} {b.sigma_rotation_deg:>8.3f}")
-    _save_json(json_out, {"relations": len(rows), "bins": [b.as_dict() for b in bins]})
+    by_path = heading_by_path(rows)
+    if by_path:
+        typer.echo("heading error by odometry path between the keyframes:")
+        typer.echo(f"{'path_m':>12} {'n':>6} {'med_deg':>8} {'p95_deg':>8} {'med_°/m':>8} {'p95_°/m':>8} {'σ_deg':>8}")
+        for h in by_path:
+            span = f"{h.lo_m:.0f}+" if not np.isfinite(h.hi_m) else f"{h.lo_m:.0f}-{h.hi_m:.0f}"
+            typer.echo(f"{span:>12} {h.n:>6} {h.error_median_deg:>8.2f} {h.error_p95_deg:>8.2f} {h.rate_median_deg_per_m:>8.4f} "
+                       f"{h.rate_p95_deg_per_m:>8.4f} {h.sigma_median_deg:>8.2f}")
+    _save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "bins": [b.as_dict() for b in bins],
+                          "heading_by_path": [h.as_dict() for h in by_path]})
+
+
+def _run_heading_drift(run: Path) -> float:
+    """The heading-rate σ (°/m) of the run's own configuration (``config.yaml``), or the default one."""
+    from slam.loops.config import LoopConfig
+
+    default = LoopConfig().heading_drift_deg_per_m
+    try:
+        import yaml
+
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        return float(cfg["loops"]["heading_drift_deg_per_m"])
+    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError):
+        return default
 
 
 def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:
