@@ -8,11 +8,12 @@ covariances are left as they were, so the graph is as sure of itself as before),
 the back end (:func:`slam.pipeline.loop_replay.replay_loops`, which accepts exactly what ``slam run`` does).
 Bias 0 reproduces ``slam run``.
 
-Reported per log and bias: the relation error (Kümmerle et al. 2009) of every scan's pose, the closures
+Reported per log and bias, for the default configuration and, side by side, the same without the loop
+closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0; ``--no-reference`` skips it): the relation error (Kümmerle et al. 2009) of every scan's pose, the closures
 accepted, the precision after the final solve (Cartographer's 20 cm / 1°), the global searches, and the
 self-check's verdict with its contradicting keyframes. Prints one JSON object.
 
-    .venv/bin/python benchmarks/drift_stress.py LOG:RELATIONS [LOG:RELATIONS ...] [--bias 0 0.1 0.3]
+    .venv/bin/python benchmarks/drift_stress.py LOG:RELATIONS [LOG:RELATIONS ...] [--bias 0 0.1 0.3] [--no-reference]
 
 Without arguments: the bundled Intel and MIT CSAIL logs (``data/``).
 """
@@ -50,24 +51,31 @@ def tilted(record: FrontEndRecord, deg_per_m: float) -> FrontEndRecord:
     return dataclasses.replace(record, edges=[tilt(e) for e in record.edges], wheel_edges=[tilt(w) for w in record.wheel_edges])
 
 
-def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig) -> dict:
+def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, reference: bool) -> dict:
+    """Per bias, the default configuration (``bias``) and, with *reference*, the same without the loop
+    closer's heading-rate term (``bias_without_heading_rate``), replayed on one recording."""
     t0 = time.perf_counter()
     record = record_front_end(open_log(log).frames(), config)
     out: dict = {"keyframes": len(record.keyframes), "front_end_s": round(time.perf_counter() - t0, 1), "bias": {}}
     rel = read_relations(relations)
-    for b in biases:
-        rep = replay_loops(tilted(record, b), config.loops, config.backend)
-        rr = evaluate_relations(Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses)), rel)
-        st = rep.stats
-        acc = int(st.get("accepted", 0) + st.get("accepted_as_group", 0))
-        sc = self_check(record.keyframes, rep.keyframe_poses, rep.loops, record.planar)
-        out["bias"][str(b)] = {
-            "relation_error_m": round(float(rr.trans_mean), 4), "relation_error_deg": round(float(rr.rot_mean_deg), 3),
-            "closures_accepted": acc, "pruned": int(st.get("pruned", 0)),
-            "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
-            "global_searches": int(st.get("global_searches", 0)),
-            "self_check": sc.verdict, "contradicting": f"{sc.keyframes_contradicting}/{sc.keyframes_checked}",
-            "replay_s": round(rep.time_s, 1)}
+    variants = [("bias", config.loops)]
+    if reference:
+        variants.append(("bias_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
+    for key, loops in variants:
+        out[key] = {}
+        for b in biases:
+            rep = replay_loops(tilted(record, b), loops, config.backend)
+            rr = evaluate_relations(Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses)), rel)
+            st = rep.stats
+            acc = int(st.get("accepted", 0) + st.get("accepted_as_group", 0))
+            sc = self_check(record.keyframes, rep.keyframe_poses, rep.loops, record.planar)
+            out[key][str(b)] = {
+                "relation_error_m": round(float(rr.trans_mean), 4), "relation_error_deg": round(float(rr.rot_mean_deg), 3),
+                "closures_accepted": acc, "pruned": int(st.get("pruned", 0)),
+                "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
+                "global_searches": int(st.get("global_searches", 0)),
+                "self_check": sc.verdict, "contradicting": f"{sc.keyframes_contradicting}/{sc.keyframes_checked}",
+                "replay_s": round(rep.time_s, 1)}
     return out
 
 
@@ -75,6 +83,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="*", help="LOG:RELATIONS")
     ap.add_argument("--bias", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="heading bias [deg per m travelled]")
+    ap.add_argument("--no-reference", action="store_true", help="skip the replays without the heading-rate term")
     args = ap.parse_args()
     pairs = args.runs or [f"{REPO}/data/intel.clf.bz2:{REPO}/data/intel.relations",
                           f"{REPO}/data/mit-csail.clf.bz2:{REPO}/data/mit-csail.relations"]
@@ -82,7 +91,7 @@ def main() -> None:
     result = {"bias_deg_per_m": args.bias, "logs": {}}
     for p in pairs:
         log, rel = p.rsplit(":", 1)
-        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config)
+        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config, not args.no_reference)
     print(json.dumps(result, indent=1))
 
 

@@ -41,6 +41,30 @@ def test_windows_span_three_sigma_per_axis_above_their_floors_and_vouch_only_at_
     assert vouched == [True, False, False, False]
 
 
+def test_the_heading_rate_widens_spatial_windows_up_to_the_spatial_limit_and_no_further():
+    """Three places with the same independent noise (σ 0.1 m, 0.5°) and a growing heading-rate part: the
+    window follows the total σ, is capped at ``max_window_m`` while the independent noise alone would be
+    searched spatially, and is the independent noise's when that alone exceeds it (a global place stays
+    one, and no place becomes one through the rate)."""
+    cfg = LoopConfig()
+    noise_xy = np.array([0.1, 0.1, 0.1, 4.0])  # per axis; the last alone is beyond max_window_m / 3
+    drift_xy = np.array([0.0, 1.0, 8.0, 8.0])
+    noise_th, drift_th = np.radians(0.5), np.radians([0.0, 3.0, 20.0, 20.0])
+    unc = NodeUncertainty(2 * (noise_xy**2 + drift_xy**2), noise_th**2 + drift_th**2, 2 * drift_xy**2, drift_th**2)
+    win_xy, win_th, sd = C.windows(unc, cfg, planar=True)
+    total_xy = np.sqrt(noise_xy**2 + drift_xy**2)
+    assert win_xy[0] == pytest.approx(cfg.window_floor_m)  # no rate: the floor, vouched
+    assert win_xy[1] == pytest.approx(cfg.window_sigmas * total_xy[1])
+    assert win_xy[2] == pytest.approx(cfg.max_window_m)  # capped: still a spatial candidate, searched widest
+    assert win_xy[3] == pytest.approx(cfg.window_sigmas * noise_xy[3])  # beyond: the global search's, by its noise
+    assert np.allclose(sd, total_xy)  # reach follows the total
+    floor_th = np.radians(cfg.window_floor_deg)
+    assert np.allclose(win_th, np.minimum(np.maximum(cfg.window_sigmas * np.sqrt(noise_th**2 + drift_th**2), floor_th), np.pi))
+    poses = np.array([G.xytheta_to_matrix(0.0, 0.0, 0.0)] * 4)
+    assert C.global_places(poses, 3, unc, cfg.model_copy(update={"exclude_recent_keyframes": 1}), True, 1.0, 1).tolist() == []
+    assert unc.without_drift().position_var == pytest.approx(2 * noise_xy**2)
+
+
 def _scene(K: int = 100):
     """Keyframe 99 at the origin; 50–70 a recent, well-tied pass 0.3–1.3 m away; 5–10 an old pass
     3 m away with σ 1.5 m per axis; 20 a place 30 m away with σ 15 m (beyond any spatial window)."""
