@@ -33,14 +33,15 @@ __all__ = ["RESULT_KEYS", "columns", "flat_rows", "markdown_table", "write_resul
 #: Keys of a batch row, in table order.
 RESULT_KEYS = ("log", "setting", "values", "status", "relation_trans_mean_m", "relation_rot_mean_deg", "relations_used",
                "cartographer_trans_mean_m", "cartographer_rot_mean_deg", "ape_rmse_m", "loops_accepted", "loops_pruned",
-               "loop_precision", "scans", "keyframes", "wall_time_s", "peak_memory_mb", "run_dir", "log_path",
+               "loop_precision", "self_check", "self_check_contradicting", "scans", "keyframes", "wall_time_s", "peak_memory_mb", "run_dir", "log_path",
                "trajectory_sha256", "resumed")
 
 # Markdown / HTML: (key, header, format)
 _SHOWN = (("relation_trans_mean_m", "relation error [m]", "{:.4f}"), ("relation_rot_mean_deg", "[deg]", "{:.3f}"),
           ("cartographer_trans_mean_m", "Cartographer [m]", "{:.4f}"), ("cartographer_rot_mean_deg", "[deg]", "{:.3f}"),
           ("ape_rmse_m", "APE RMSE [m]", "{:.4f}"), ("loops_accepted", "closures", "{}"), ("loops_pruned", "pruned", "{}"),
-          ("loop_precision", "precision", "{:.2%}"), ("keyframes", "keyframes", "{}"), ("wall_time_s", "wall [s]", "{:.1f}"),
+          ("loop_precision", "precision", "{:.2%}"), ("self_check", "self-check", "{}"),
+          ("self_check_contradicting", "contradicting / checked keyframes", "{}"), ("keyframes", "keyframes", "{}"), ("wall_time_s", "wall [s]", "{:.1f}"),
           ("peak_memory_mb", "peak [MB]", "{:.0f}"))
 
 

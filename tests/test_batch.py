@@ -178,6 +178,20 @@ def test_loop_precision_is_the_reports(batch):
             assert r["loop_precision"] is None
 
 
+def test_the_row_carries_the_runs_self_check(batch):
+    """Each ok row's self-check verdict and contradicting / checked keyframes are those of its run's
+    summary.json; a failed row has none."""
+    out, _, doc = batch
+    for r in doc["rows"]:
+        if r["status"] != "ok":
+            assert r["self_check"] is None and r["self_check_contradicting"] is None
+            continue
+        sc = json.loads((out / "runs" / r["log"] / r["setting"] / "summary.json").read_text())["self_check"]
+        assert r["self_check"] == sc["verdict"] in ("consistent", "suspect")
+        assert r["self_check_contradicting"] == f"{sc['keyframes_contradicting']} / {sc['keyframes_checked']}"
+    assert "| self-check |" in (out / "results.md").read_text()
+
+
 def test_broken_log_is_a_failed_row_and_the_rest_finish(batch, logs):
     """The broken log's two rows say `failed: <file>:/scan message 40: ...`; no folder was made for them;
     the 6 others are ok; the exit status is 1."""
@@ -401,8 +415,12 @@ def test_ctrl_c_leaves_complete_run_folders_only(tmp_path):
             seen.append(line)
             assert line, "".join(seen)
         assert _ray_processes(ray_tmp), "the batch did not start its Ray under RAY_TMPDIR"
-        # the 400-scan run takes ~3 s: interrupt while the first is done or nearly and the second runs
-        time.sleep(6.0)
+        # Interrupt as soon as the first (400-scan) run has finished, while the longer ones run: a fixed
+        # sleep depends on the machine's speed (on a fast one all three had finished).
+        deadline = time.monotonic() + 300.0
+        while not list(out.glob("runs/intel/*/batch.json")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() is not None else "timeout"
+            time.sleep(0.05)
         assert proc.poll() is None
         proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=120)

@@ -115,6 +115,7 @@ def _finish_row(job: Job, folder: Path, summary: dict[str, Any], peak_mb: float 
     cart = (rel.get("published") or {}).get("cartographer") or {}
     ape = (metrics.get("ape_trans_m") or {}).get("estimate") or {}
     pruned = int((s.get("loop_stats") or {}).get("pruned", 0))
+    sc = s.get("self_check") or {}
     return _row(
         job, status="ok",
         relation_trans_mean_m=est.get("trans_mean") if est.get("n_used") else None,
@@ -125,6 +126,9 @@ def _finish_row(job: Job, folder: Path, summary: dict[str, Any], peak_mb: float 
         ape_rmse_m=ape.get("rmse"),
         loops_accepted=int(s["loop_closures"]) + pruned, loops_pruned=pruned,
         loop_precision=_loop_precision(folder, pruned),
+        self_check=sc.get("verdict"),
+        self_check_contradicting=(f"{sc['keyframes_contradicting']} / {sc['keyframes_checked']}"
+                                  if "keyframes_checked" in sc else None),
         scans=s["scans"], keyframes=s["keyframes"], wall_time_s=s["wall_time_s"], peak_memory_mb=s["peak_memory_mb"],
         run_dir=str(Path(job.out)),
         trajectory_sha256=hashlib.sha256((folder / "trajectory.tum").read_bytes()).hexdigest())
