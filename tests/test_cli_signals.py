@@ -5,10 +5,13 @@ death by signal."""
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import psutil
 import pytest
@@ -18,10 +21,19 @@ from tests.conftest import DATA, REPO
 pytestmark = pytest.mark.xdist_group("pipeline")
 
 
-def _start(args, tmp_path, code=None):
+@pytest.fixture
+def tmp_path(tmp_path_factory):
+    """A short temporary folder: the runs below use it as TMPDIR, where multiprocessing's forkserver puts its
+    socket, and an AF_UNIX path holds at most 107 bytes (pytest's own tmp_path grows with its run counter)."""
+    short = Path(tempfile.mkdtemp(prefix="sig", dir="/tmp"))
+    yield short
+    shutil.rmtree(short, ignore_errors=True)
+
+
+def _start(args, tmp_path, code=None, tmpdir=None):
     """`python -m slam ARGS` (or `python -c CODE ARGS`) with its own TMPDIR, as if started from a shell."""
-    tmp = tmp_path / "tmp"
-    tmp.mkdir(exist_ok=True)
+    tmp = tmpdir or tmp_path / "tmp"
+    tmp.mkdir(exist_ok=True, parents=True)
     env = dict(os.environ, PYTHONPATH=str(REPO), TMPDIR=str(tmp))
     cmd = [sys.executable, "-m", "slam", *args] if code is None else [sys.executable, "-c", code, *args]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
@@ -112,3 +124,17 @@ def test_a_signal_during_interpreter_shutdown_does_not_kill_a_finished_command(t
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 0, (proc.returncode, stderr)
     assert "scans: 1988" in stdout and "Traceback" not in stderr
+
+
+def test_a_temporary_folder_too_long_for_the_stage_sockets_is_one_line_naming_it(tmp_path):
+    """TMPDIR with a path too long for the forkserver's AF_UNIX socket: exit 2, one `error:` line that names the
+    folder and what to do, no traceback, no output folder."""
+    deep = tmp_path / ("d" * 60) / ("e" * 60)
+    out = tmp_path / "run"
+    proc = _start(["run", str(DATA / "intel.clf.bz2"), "--out", str(out), "--quiet", "--max-scans", "20"], tmp_path,
+                  tmpdir=deep)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 2, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and str(deep) in lines[0] and "TMPDIR" in lines[0], stderr
+    assert not out.exists()

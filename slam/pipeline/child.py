@@ -12,6 +12,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import queue
 import resource
+import tempfile
 from typing import Any, Callable, Iterator
 
 from registration.errors import GpslamError
@@ -59,7 +60,14 @@ class ChildProcess:
         self._outbox = ctx.Queue()
         self._proc = ctx.Process(target=_child_main, args=(serve, args, self._inbox, self._outbox),
                                  name=f"gpslam-{name.replace(' ', '-')}", daemon=True)
-        self._proc.start()
+        try:
+            self._proc.start()
+        except OSError as exc:  # the forkserver's socket lives under TMPDIR, and AF_UNIX paths are short (108 bytes)
+            if "AF_UNIX path too long" not in str(exc):
+                raise
+            raise GpslamError(f"the temporary folder {tempfile.gettempdir()} has too long a path for the {name} "
+                              "process's socket: set TMPDIR to a shorter folder (or stage_processes: false in the "
+                              "config)") from None
 
     def _check_alive(self) -> None:
         if not self._proc.is_alive():
