@@ -13,7 +13,10 @@ closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0; ``--no-referenc
 accepted, the precision after the final solve (Cartographer's 20 cm / 1°), the global searches, and the
 self-check's verdict with its contradicting keyframes. Prints one JSON object.
 
-    .venv/bin/python benchmarks/drift_stress.py LOG:RELATIONS [LOG:RELATIONS ...] [--bias 0 0.1 0.3] [--no-reference]
+    .venv/bin/python benchmarks/drift_stress.py LOG:RELATIONS [LOG:RELATIONS ...] [--bias 0 0.1 0.3] [--bend 10] [--no-reference]
+
+``--bend``: besides the constant biases, one leg bent — a 100 m stretch of path from a third of the way along
+turned by so many degrees in all, the rest as measured (the held-out log's west leg turned by ~10°).
 
 Without arguments: the bundled Intel and MIT CSAIL logs (``data/``).
 """
@@ -51,25 +54,46 @@ def tilted(record: FrontEndRecord, deg_per_m: float) -> FrontEndRecord:
     return dataclasses.replace(record, edges=[tilt(e) for e in record.edges], wheel_edges=[tilt(w) for w in record.wheel_edges])
 
 
-def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, reference: bool) -> dict:
-    """Per bias, the default configuration (``bias``) and, with *reference*, the same without the loop
-    closer's heading-rate term (``bias_without_heading_rate``), replayed on one recording."""
+def bent(record: FrontEndRecord, degrees: float, length_m: float = 100.0) -> FrontEndRecord:
+    """*record* with one stretch of *length_m* of path, starting a third of the way along, turned by
+    *degrees* in all (each edge in it by its share of the stretch; covariances unchanged): one leg of the
+    trajectory bent, as the held-out log's was, and the rest of the path as measured."""
+    lengths = np.array([0.0 if e is None else float(np.linalg.norm(e.measurement[:2, 3])) for e in record.edges])
+    mid = np.cumsum(lengths) - 0.5 * lengths
+    start = mid[-1] / 3.0 if len(mid) else 0.0
+    inside = (mid >= start) & (mid < start + length_m)
+
+    def turn(k, edge):  # type: ignore[no-untyped-def]
+        if edge is None or not inside[k]:
+            return edge
+        return dataclasses.replace(edge, measurement=edge.measurement @ G.xytheta_to_matrix(0.0, 0.0, np.radians(degrees * lengths[k] / length_m)))
+    return dataclasses.replace(record, edges=[turn(k, e) for k, e in enumerate(record.edges)],
+                               wheel_edges=[turn(k, w) for k, w in enumerate(record.wheel_edges)])
+
+
+def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, reference: bool,
+           bends: list[float] = ()) -> dict:
+    """Per bias (``bias``) and per bend (``bend``), the default configuration and, with *reference*, the same
+    without the loop closer's heading-rate term (``…_without_heading_rate``), replayed on one recording."""
     t0 = time.perf_counter()
     record = record_front_end(open_log(log).frames(), config)
     out: dict = {"keyframes": len(record.keyframes), "front_end_s": round(time.perf_counter() - t0, 1), "bias": {}}
     rel = read_relations(relations)
-    variants = [("bias", config.loops)]
+    variants = [("", config.loops)]
     if reference:
-        variants.append(("bias_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
-    for key, loops in variants:
-        out[key] = {}
-        for b in biases:
-            rep = replay_loops(tilted(record, b), loops, config.backend)
+        variants.append(("_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
+    cases = [("bias", str(b), lambda b=b: tilted(record, b)) for b in biases]
+    cases += [("bend", str(d), lambda d=d: bent(record, d)) for d in bends]
+    for suffix, loops in variants:
+        for kind, name, perturbed in cases:
+            key = kind + suffix
+            out.setdefault(key, {})
+            rep = replay_loops(perturbed(), loops, config.backend)
             rr = evaluate_relations(Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses)), rel)
             st = rep.stats
             acc = int(st.get("accepted", 0) + st.get("accepted_as_group", 0))
             sc = self_check(record.keyframes, rep.keyframe_poses, rep.loops, record.planar)
-            out[key][str(b)] = {
+            out[key][name] = {
                 "relation_error_m": round(float(rr.trans_mean), 4), "relation_error_deg": round(float(rr.rot_mean_deg), 3),
                 "closures_accepted": acc, "pruned": int(st.get("pruned", 0)),
                 "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
@@ -82,16 +106,17 @@ def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="*", help="LOG:RELATIONS")
-    ap.add_argument("--bias", type=float, nargs="+", default=[0.0, 0.1, 0.3], help="heading bias [deg per m travelled]")
+    ap.add_argument("--bias", type=float, nargs="*", default=[0.0, 0.1, 0.3], help="heading bias [deg per m travelled]")
+    ap.add_argument("--bend", type=float, nargs="*", default=[], help="also: one 100 m stretch (from a third of the path) turned by this many degrees")
     ap.add_argument("--no-reference", action="store_true", help="skip the replays without the heading-rate term")
     args = ap.parse_args()
     pairs = args.runs or [f"{REPO}/data/intel.clf.bz2:{REPO}/data/intel.relations",
                           f"{REPO}/data/mit-csail.clf.bz2:{REPO}/data/mit-csail.relations"]
     config = SlamConfig()
-    result = {"bias_deg_per_m": args.bias, "logs": {}}
+    result = {"bias_deg_per_m": args.bias, "bend_deg": args.bend, "logs": {}}
     for p in pairs:
         log, rel = p.rsplit(":", 1)
-        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config, not args.no_reference)
+        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config, not args.no_reference, args.bend)
     print(json.dumps(result, indent=1))
 
 
