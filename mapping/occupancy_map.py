@@ -112,7 +112,30 @@ def load_npz(path: str | Path) -> OccupancyMap:
         return OccupancyMap(geom, prob, mean, var, np.asarray(z["observed"], bool), method)
 
 
-MAX_PNG_CELLS = 2400  # cells along the longer side of a map's PNG before it is subsampled
+PNG_CELLS = 800  # cells along the longer side of a map's PNG: about the figure's width in pixels
+
+
+def max_pool(img: Array, mask: NDArray[np.bool_] | None, block: int) -> tuple[Array, NDArray[np.bool_] | None]:
+    """*img* reduced by the maximum over ``block × block`` cells, and *mask* (True: observed) by any: a
+    one-cell wall of a large map survives the reduction to the figure's pixels, where keeping every
+    k-th cell (what nearest-neighbour display does) drops it. Cells outside *mask* do not count (a
+    block with none observed is unobserved). Done in bands of *block* rows, so the extra memory is one
+    band, not a copy of the map."""
+    if block <= 1:
+        return img, mask
+    h, w = img.shape
+    H, W = -(-h // block), -(-w // block)
+    out = np.full((H, W), -np.inf)
+    for r in range(H):
+        band = np.asarray(img[r * block:(r + 1) * block], dtype=float)
+        if mask is not None:
+            band = np.where(mask[r * block:(r + 1) * block], band, -np.inf)
+        pad = W * block - w
+        if pad:
+            band = np.pad(band, ((0, 0), (0, pad)), constant_values=-np.inf)
+        out[r] = band.reshape(band.shape[0], W, block).max(axis=(0, 2))
+    seen = np.isfinite(out)
+    return np.where(seen, out, 0.0), (seen if mask is not None else None)
 
 
 def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float], label: str, cmap: str,
@@ -122,13 +145,10 @@ def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    # The figure is ~840 px wide: plot every k-th cell of a large map (what nearest-neighbour
-    # display shows anyway) so matplotlib's full-size float copies stay small (a 420 m × 215 m
-    # map at 0.05 m cost ~3 GB of peak memory).
+    # The figure is ~840 px wide: a map of more cells than that is max-pooled to about one cell a pixel
+    # (walls, one cell thick, stay visible at any map size; matplotlib's float copies stay small).
     h, w = img.shape
-    k = max(1, int(np.ceil(max(h, w) / MAX_PNG_CELLS)))
-    img = img[::k, ::k]
-    mask = None if mask is None else mask[::k, ::k]
+    img, mask = max_pool(img, mask, max(1, int(np.ceil(max(h, w) / PNG_CELLS))))
     data = np.ma.masked_array(img, mask=None if mask is None else ~mask)
     fig, ax = plt.subplots(figsize=(7, 7 * h / max(w, 1) + 0.5), dpi=120)
     cm = plt.get_cmap(cmap).with_extremes(bad="#b0b0b0")

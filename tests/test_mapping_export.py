@@ -204,3 +204,50 @@ def test_cli_map_tum_poses_equal_ground_truth(tmp_path):
     a, b = load_npz(tmp_path / "a" / "map.npz"), load_npz(tmp_path / "b" / "map.npz")
     assert a.geometry == b.geometry
     np.testing.assert_allclose(a.probability, b.probability, atol=1e-9)
+
+
+def test_max_pooling_keeps_every_one_cell_wall_and_leaves_free_blocks_free():
+    """A 4000 × 3000 free map with a one-cell wall row, a one-cell wall column and an unobserved corner, pooled
+    by 5: the wall is in every pooled row / column it crosses, nothing else rises above the free value, and a
+    block is unobserved exactly when none of its cells was observed."""
+    from mapping.occupancy_map import max_pool
+
+    p = np.full((4000, 3000), 0.05)
+    p[1234, :] = 0.95
+    p[:, 2718] = 0.9
+    obs = np.ones(p.shape, bool)
+    obs[:1000, :1000] = False
+    q, seen = max_pool(p, obs, 5)
+    assert q.shape == seen.shape == (800, 600)
+    assert np.all(q[1234 // 5, 200:] == 0.95) and np.all(q[200:, 2718 // 5][q[200:, 2718 // 5] < 0.95] == 0.9)
+    free = np.ones(q.shape, bool)
+    free[1234 // 5, :] = False
+    free[:, 2718 // 5] = False
+    assert np.all(q[free & seen] == 0.05)
+    assert not seen[:200, :200].any() and seen[200:, :].all() and seen[:, 200:].all()
+    # A partly observed block counts its observed cells only.
+    obs2 = np.zeros((10, 10), bool)
+    obs2[0, 0] = True
+    q2, seen2 = max_pool(np.where(obs2, 0.2, 0.99), obs2, 5)
+    assert q2[0, 0] == 0.2 and seen2.tolist() == [[True, False], [False, False]]
+    # Sizes that are not multiples of the block, and no mask.
+    q3, none = max_pool(np.arange(7 * 11, dtype=float).reshape(7, 11), None, 3)
+    assert none is None and q3.shape == (3, 4) and q3[-1, -1] == 76.0 and q3[0, 0] == 24.0
+
+
+def test_the_png_of_a_large_map_shows_its_walls(tmp_path):
+    """map.png of a 200 m × 150 m map at 5 cm (4000 × 3000 cells, ~840 px wide figure): a one-cell wall across
+    the map is drawn as dark pixels along most of the axes width."""
+    import matplotlib.image as mpimg
+
+    p = np.full((3000, 4000), 0.05)
+    p[1501, :] = 0.95  # an odd row: keeping every other cell would drop it
+    m = OccupancyMap(GridGeometry((0.0, 0.0), 0.05, p.shape), p, None, None, np.ones(p.shape, bool), "logodds")
+    export_map(m, tmp_path)
+    img = mpimg.imread(tmp_path / "map.png")[..., :3].mean(axis=2)
+    dark_per_row = (img < 0.3).sum(axis=1)
+    spanning = np.flatnonzero(dark_per_row > 400)  # the axes' top and bottom spines, and the wall between them
+    assert len(spanning) >= 2, dark_per_row.max()
+    top, bottom = spanning.min(), spanning.max()
+    inside = spanning[(spanning > top + 5) & (spanning < bottom - 5)]
+    assert len(inside) and abs(inside.mean() - 0.5 * (top + bottom)) < 5  # the wall, halfway up the map
