@@ -8,6 +8,8 @@ which equals the trapezoidal area under the ROC curve.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -49,6 +51,66 @@ def map_roc(probability: Array, gt_classes: NDArray[np.int8]) -> tuple[Array, Ar
     keep = (g != -1) & np.isfinite(p)
     fpr, tpr, _ = roc_curve(p[keep], g[keep] >= 50)
     return fpr, tpr, float(np.trapezoid(tpr, fpr))
+
+
+@dataclass(frozen=True)
+class MapScores:
+    """A map's scores against a ground truth on the ground truth's grid (:func:`map_scores`).
+
+    Attributes:
+        auc: ROC AUC over every known ground-truth cell, unobserved ones scored 0.5 (Yuan et al. 2018).
+        auc_observed: the same over the known cells the map observed (None when they are all one class).
+        coverage: fraction of the ground truth's free cells the map observed.
+        accuracy, accuracy_threshold: the best accuracy over occupancy thresholds (occupied ≥ threshold) and
+            its threshold, over every known cell.
+        f1, f1_threshold: the best F1 score of the occupied class and its threshold.
+    """
+
+    auc: float
+    auc_observed: float | None
+    coverage: float
+    accuracy: float
+    accuracy_threshold: float
+    f1: float
+    f1_threshold: float
+
+    def as_dict(self) -> dict:
+        return dict(vars(self))
+
+
+def map_scores(probability: Array, observed: NDArray[np.bool_], gt_classes: NDArray[np.int8]) -> MapScores:
+    """:class:`MapScores` of a probability grid with its *observed* mask against ground-truth classes of the same
+    shape (−1 unknown, ≥ 50 occupied). Accuracy and F1 are read off the ROC's counts at every distinct
+    threshold, so the best of each is exact."""
+    p = np.asarray(probability, dtype=float)
+    obs = np.asarray(observed, dtype=bool)
+    g = np.asarray(gt_classes)
+    if not (p.shape == obs.shape == g.shape):
+        raise DegenerateInputError(f"map {p.shape}, observed {obs.shape} and ground truth {g.shape} differ in shape")
+    known = (g != -1) & np.isfinite(p)
+    occupied = g >= 50
+    fpr, tpr, thr = roc_curve(p[known], occupied[known])
+    auc = float(np.trapezoid(tpr, fpr))
+    seen = known & obs
+    try:
+        auc_observed: float | None = roc_auc(p[seen], occupied[seen])
+    except DegenerateInputError:
+        auc_observed = None
+    free = known & ~occupied
+    P, N = int((known & occupied).sum()), int(free.sum())
+    tp, fp = tpr * P, fpr * N
+    accuracy = (tp + (N - fp)) / (P + N)
+    f1 = 2 * tp / np.maximum(2 * tp + fp + (P - tp), 1e-300)
+    a, f = int(np.argmax(accuracy)), int(np.argmax(f1))
+    return MapScores(auc, auc_observed, float((free & obs).sum() / max(N, 1)), float(accuracy[a]), float(thr[a]),
+                     float(f1[f]), float(thr[f]))
+
+
+def observed_on_grid(observed: NDArray[np.bool_], origin: Array, resolution: float, target_shape: tuple[int, int],
+                     target_origin: Array, target_resolution: float) -> NDArray[np.bool_]:
+    """The *observed* mask at the centres of another (axis-aligned) grid by nearest cell; False outside."""
+    return resample_to_grid(np.ones(observed.shape), observed, origin, resolution, target_shape, target_origin,
+                            target_resolution) == 1.0
 
 
 def resample_to_grid(probability: Array, observed: NDArray[np.bool_], origin: Array, resolution: float,

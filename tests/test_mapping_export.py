@@ -177,6 +177,13 @@ def test_cli_map_and_eval(tmp_path):
     o = resample_to_grid(m.observed.astype(float), np.ones_like(m.observed), m.origin, m.resolution, gt.shape,
                          gt.origin[:2], gt.resolution)
     assert map_roc(np.where(o == 1, p, np.nan), gt.classes)[2] > 0.9
+    # The other scores of the same run: auc_observed is the AUC over the observed cells just computed, and
+    # coverage the observed share of the ground truth's free cells.
+    got = {line.split(":")[0]: line.split(":", 1)[1].split()[0] for line in r.output.splitlines() if ":" in line}
+    assert float(got["auc_observed"]) == pytest.approx(map_roc(np.where(o == 1, p, np.nan), gt.classes)[2], abs=1e-6)
+    free = gt.classes == 0
+    assert float(got["coverage"]) == pytest.approx((free & (o == 1)).sum() / free.sum(), abs=1e-4)
+    assert 0.5 <= float(got["accuracy"]) <= 1.0 and 0.0 < float(got["f1"]) <= 1.0
 
 
 def test_cli_map_tum_poses_equal_ground_truth(tmp_path):
@@ -251,3 +258,29 @@ def test_the_png_of_a_large_map_shows_its_walls(tmp_path):
     top, bottom = spanning.min(), spanning.max()
     inside = spanning[(spanning > top + 5) & (spanning < bottom - 5)]
     assert len(inside) and abs(inside.mean() - 0.5 * (top + bottom)) < 5  # the wall, halfway up the map
+
+
+def test_map_scores_in_closed_form():
+    """Four free and two occupied known cells, one unknown: a perfect map observed everywhere scores 1 on every
+    count; unobserved cells drag the AUC towards 0.5 but not the AUC of the observed cells; the best accuracy
+    and F1 are those of the best threshold, counted by hand."""
+    from mapping.roc import map_scores
+
+    gt = np.array([[0, 0, 0, 0, 100, 100, -1]], dtype=np.int8)
+    perfect = np.array([[0.1, 0.2, 0.1, 0.3, 0.9, 0.8, 0.5]])
+    s = map_scores(perfect, np.ones(gt.shape, bool), gt)
+    assert (s.auc, s.auc_observed, s.coverage, s.accuracy, s.f1) == (1.0, 1.0, 1.0, 1.0, 1.0)
+    assert 0.3 < s.f1_threshold <= 0.8 and 0.3 < s.accuracy_threshold <= 0.8
+    # Two free cells and one occupied unobserved (p = 0.5 there).
+    obs = np.array([[True, True, False, False, True, False, True]])
+    p = np.where(obs, perfect, 0.5)
+    s = map_scores(p, obs, gt)
+    assert s.auc_observed == 1.0 and s.coverage == 0.5
+    # Scores: free 0.1 0.2 0.5 0.5, occupied 0.9 0.5 → Mann–Whitney: 8 pairs, 6 wins, 2 ties: (6 + 1) / 8.
+    assert s.auc == pytest.approx(7 / 8)
+    # Best threshold 0.9: TP 1, FP 0, FN 1, TN 4 → accuracy 5/6, F1 2/3; at 0.5: TP 2, FP 2 → accuracy 4/6, F1 2/3.
+    assert s.accuracy == pytest.approx(5 / 6) and s.accuracy_threshold == pytest.approx(0.9)
+    assert s.f1 == pytest.approx(2 / 3)
+    # All observed cells of one class: no AUC of the observed cells.
+    only_free = np.array([[True, True, True, True, False, False, False]])
+    assert map_scores(perfect, only_free, gt).auc_observed is None

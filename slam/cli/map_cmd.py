@@ -125,10 +125,12 @@ def eval_map(
     gt_yaml: Path = typer.Argument(..., help="Ground-truth map_server YAML (+ image)."),
     plot: Path | None = typer.Option(None, "--plot", help="Save the ROC curve as a PNG."),
 ) -> None:
-    """ROC/AUC of a map against a ground truth (unknown ground-truth cells ignored); prints ``auc: X``."""
+    """Scores of a map against a ground truth (unknown ground-truth cells ignored): ``auc`` (unobserved cells
+    at p = 0.5), ``auc_observed`` (the cells the map observed), ``coverage`` (the ground truth's free cells
+    observed) and the best-threshold ``accuracy`` and ``f1`` (occupied class)."""
     from mapping.mapserver import read_map_server
     from mapping.occupancy_map import load_npz
-    from mapping.roc import map_roc, resample_to_grid
+    from mapping.roc import map_roc, map_scores, observed_on_grid, resample_to_grid
     from registration.atomic import check_output_file
     from registration.errors import MapFormatError
 
@@ -140,7 +142,13 @@ def eval_map(
         raise MapFormatError(gt_yaml, "origin", "a rotated ground-truth origin (yaw ≠ 0) is not supported")
     p = resample_to_grid(m.probability, m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
     fpr, tpr, auc = map_roc(p, gt.classes)
+    obs = observed_on_grid(m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
+    sc = map_scores(p, obs, gt.classes)
     typer.echo(f"auc: {auc:.6f}")
+    typer.echo(f"auc_observed: {'–' if sc.auc_observed is None else f'{sc.auc_observed:.6f}'}")
+    typer.echo(f"coverage: {sc.coverage:.4f}")
+    typer.echo(f"accuracy: {sc.accuracy:.4f} (occupied at p ≥ {sc.accuracy_threshold:.3f})")
+    typer.echo(f"f1: {sc.f1:.4f} (occupied at p ≥ {sc.f1_threshold:.3f})")
     if plot is not None:
         import matplotlib
 
