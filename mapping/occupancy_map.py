@@ -139,7 +139,8 @@ def max_pool(img: Array, mask: NDArray[np.bool_] | None, block: int) -> tuple[Ar
 
 
 def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float], label: str, cmap: str,
-              vmin: float | None, vmax: float | None, mask: NDArray[np.bool_] | None) -> None:
+              vmin: float | None, vmax: float | None, mask: NDArray[np.bool_] | None,
+              trajectory_xy: Array | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -153,6 +154,10 @@ def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float],
     fig, ax = plt.subplots(figsize=(7, 7 * h / max(w, 1) + 0.5), dpi=120)
     cm = plt.get_cmap(cmap).with_extremes(bad="#b0b0b0")
     im = ax.imshow(data, origin="lower", extent=extent, cmap=cm, vmin=vmin, vmax=vmax, interpolation="nearest")
+    if trajectory_xy is not None and len(trajectory_xy):
+        ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "-", color="tab:red", lw=0.8, label="trajectory")
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
     fig.colorbar(im, ax=ax, label=label, shrink=0.8)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -163,8 +168,9 @@ def _save_png(img: Array, path: Path, extent: tuple[float, float, float, float],
 
 
 def export_map(m: OccupancyMap, out_dir: str | Path, occupied_thresh: float = 0.65, free_thresh: float = 0.35,
-               images: bool = True) -> list[Path]:
-    """Write map.yaml + map.pgm, map.npz and (with *images*) map.png and variance.png into *out_dir*."""
+               images: bool = True, trajectory_xy: Array | None = None) -> list[Path]:
+    """Write map.yaml + map.pgm, map.npz and (with *images*) map.png and variance.png into *out_dir*;
+    *trajectory_xy* ``(N, 2)`` (m), when given, is drawn on map.png."""
     from .mapserver import write_map_server
 
     out = Path(out_dir)
@@ -176,7 +182,8 @@ def export_map(m: OccupancyMap, out_dir: str | Path, occupied_thresh: float = 0.
     save_npz(m, out / "map.npz")
     if images:
         ext = m.geometry.extent
-        _save_png(m.probability, out / "map.png", ext, "occupancy probability", "gray_r", 0.0, 1.0, None)
+        _save_png(m.probability, out / "map.png", ext, "occupancy probability", "gray_r", 0.0, 1.0, None,
+                  None if trajectory_xy is None else np.asarray(trajectory_xy, dtype=float)[:, :2])
         written.append(out / "map.png")
         if m.variance is not None:
             _save_png(m.variance, out / "variance.png", ext, "GP variance σ²", "viridis", None, None, m.observed)

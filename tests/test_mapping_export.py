@@ -284,3 +284,31 @@ def test_map_scores_in_closed_form():
     # All observed cells of one class: no AUC of the observed cells.
     only_free = np.array([[True, True, True, True, False, False, False]])
     assert map_scores(perfect, only_free, gt).auc_observed is None
+
+
+def test_cli_map_plot_trajectory_draws_the_path(tmp_path):
+    """`slam map --plot-trajectory` draws the robot's path on map.png: red pixels where the plain map has
+    none, as many as a line along the path's length at the figure's scale."""
+    import matplotlib.image as mpimg
+    from typer.testing import CliRunner
+
+    from evaluation.sim import LASER_PRESETS, load_world
+    from evaluation.sim.simulate import simulate, write_simulated_log
+    from slam.cli import app
+
+    world = load_world("rooms", 0.05, seed=3)
+    sim = simulate(world, n_scans=200, spec=LASER_PRESETS["fastgpom"], seed=3)
+    log = tmp_path / "sim.mcap"
+    write_simulated_log(sim, log)
+    runner = CliRunner()
+
+    def red_pixels(folder, *extra):
+        r = runner.invoke(app, ["map", str(log), "--out", str(folder), "--every", "5", "--method", "logodds", *extra])
+        assert r.exit_code == 0, r.output
+        img = mpimg.imread(folder / "map.png")[..., :3]
+        return int(((img[..., 0] > 0.6) & (img[..., 1] < 0.4) & (img[..., 2] < 0.4)).sum())
+
+    assert red_pixels(tmp_path / "plain") == 0
+    path_m = float(np.sum(np.linalg.norm(np.diff(sim.ground_truth[::5, :2, 3], axis=0), axis=1)))
+    assert path_m > 2.0  # the tour moves
+    assert red_pixels(tmp_path / "with", "--plot-trajectory") > 10 * path_m

@@ -66,6 +66,7 @@ def map_command(
                                     help="Ranges beyond this (m) count as no return."),
     max_dt: float = typer.Option(0.05, "--max-dt", parser=real(0.0), help="Largest |scan stamp − TUM stamp| accepted (s)."),
     config: Path | None = typer.Option(None, "--config", help="Mapping configuration YAML (mapping.config.MappingConfig)."),
+    plot_trajectory: bool = typer.Option(False, "--plot-trajectory", help="Draw the robot's path on map.png."),
 ) -> None:
     """Build an occupancy map from a log with given poses; writes map.pgm/.yaml/.png/.npz, variance.png, map.mcap."""
     import time
@@ -107,7 +108,8 @@ def map_command(
     dt = time.perf_counter() - t0
     m = mapper.to_map().crop_observed()
     with atomic_directory(out, MAP_MARKER) as tmp:  # all files or none; an earlier map folder is replaced
-        export_map(m, tmp, cfg.occupied_thresh, cfg.free_thresh)
+        path_xy = np.array([T[:2, 3] for _, T in pairs]) if plot_trajectory else None
+        export_map(m, tmp, cfg.occupied_thresh, cfg.free_thresh, trajectory_xy=path_xy)
         with McapLogWriter(tmp / "map.mcap") as w:
             write_occupancy_grid(m, w, stamp=float(pairs[-1][0].stamp), occupied_thresh=cfg.occupied_thresh,
                                  free_thresh=cfg.free_thresh)
