@@ -263,16 +263,14 @@ def nees_cmd(
 
 def _run_heading_drift(run: Path) -> float:
     """The heading-rate σ (°/m) of the run's own configuration (``config.yaml``), or the default one."""
-    from slam.loops.config import LoopConfig
+    from registration.config import load_yaml
+    from registration.errors import ConfigError
+    from slam.pipeline.config import SlamConfig
 
-    default = LoopConfig().heading_drift_deg_per_m
     try:
-        import yaml
-
-        cfg = yaml.safe_load((run / "config.yaml").read_text())
-        return float(cfg["loops"]["heading_drift_deg_per_m"])
-    except (OSError, KeyError, TypeError, ValueError, yaml.YAMLError):
-        return default
+        return load_yaml(SlamConfig, run / "config.yaml").loops.heading_drift_deg_per_m
+    except ConfigError:
+        return SlamConfig().loops.heading_drift_deg_per_m
 
 
 def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:

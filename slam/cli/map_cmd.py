@@ -143,9 +143,9 @@ def eval_map(
     if abs(gt.origin[2]) > 1e-12:
         raise MapFormatError(gt_yaml, "origin", "a rotated ground-truth origin (yaw ≠ 0) is not supported")
     p = resample_to_grid(m.probability, m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
-    fpr, tpr, auc = map_roc(p, gt.classes)
     obs = observed_on_grid(m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
     sc = map_scores(p, obs, gt.classes)
+    auc = sc.auc
     typer.echo(f"auc: {auc:.6f}")
     typer.echo(f"auc_observed: {'–' if sc.auc_observed is None else f'{sc.auc_observed:.6f}'}")
     typer.echo(f"coverage: {sc.coverage:.4f}")
@@ -154,6 +154,7 @@ def eval_map(
     if plot is not None:
         import matplotlib
 
+        fpr, tpr, _ = map_roc(p, gt.classes)
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 

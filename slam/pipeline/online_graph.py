@@ -29,6 +29,7 @@ class OnlineGraph:
         self.backend = PipelineBackend(backend, loops, planar)
         self.loops: list[LoopClosure] = []
         self.planar = planar
+        self.dim = 2 if planar else 3  # translation dimensions
         # Every edge's covariance: each keyframe's uncertainty relative to the new one sizes its search
         # (tracked up to 100 m σ; beyond, a place is out of reach of any search).
         self.uncertainty = RelativeUncertainty(planar, limit_m2=100.0**2,
@@ -47,14 +48,13 @@ class OnlineGraph:
         else:
             be.add_keyframe(kf.id, be.poses[edge.i] @ edge.measurement)
             be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance, alone=not edge.wheels)
-            d = 2 if self.planar else 3
-            self.uncertainty.add_edge(edge.i, edge.j, edge.covariance, float(np.linalg.norm(edge.measurement[:d, 3])))
+            self.uncertainty.add_edge(edge.i, edge.j, edge.covariance, float(np.linalg.norm(edge.measurement[:self.dim, 3])))
             if wheel is not None:
                 be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
-                self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance, float(np.linalg.norm(wheel.measurement[:d, 3])))
+                self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance, float(np.linalg.norm(wheel.measurement[:self.dim, 3])))
         t1 = time.perf_counter()
         poses = be.poses
-        unc = self.uncertainty.from_node(kf.id, poses[:, : (2 if self.planar else 3), 3])
+        unc = self.uncertainty.from_node(kf.id, poses[:, : self.dim, 3])
         new, relocalise = self.closer.detect(keyframes, poses, kf.id, unc)
         t2 = time.perf_counter()
         for lc in new:
