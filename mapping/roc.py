@@ -60,7 +60,7 @@ class MapScores:
     Attributes:
         auc: ROC AUC over every known ground-truth cell, unobserved ones scored 0.5 (Yuan et al. 2018).
         auc_observed: the same over the known cells the map observed (None when they are all one class).
-        coverage: fraction of the ground truth's free cells the map observed.
+        coverage: fraction of the ground truth's free space (:func:`free_space`) the map observed.
         accuracy, accuracy_threshold: the best accuracy over occupancy thresholds (occupied ≥ threshold) and
             its threshold, over every known cell.
         f1, f1_threshold: the best F1 score of the occupied class and its threshold.
@@ -78,10 +78,31 @@ class MapScores:
         return dict(vars(self))
 
 
-def map_scores(probability: Array, observed: NDArray[np.bool_], gt_classes: NDArray[np.int8]) -> MapScores:
+MIN_SPACE_M2 = 0.5  # isolated pieces of free cells smaller than this are specks, not space
+
+
+def free_space(gt_classes: NDArray[np.int8], resolution: float) -> tuple[NDArray[np.bool_], int, float]:
+    """A plan's free space: its free cells (class 0…49) whose 8-connected piece of free cells covers at least
+    MIN_SPACE_M2. Returns the mask and the number and area (m²) of the specks left out: isolated free cells
+    a drawing leaves outside its walls, which no laser inside sees and no robot enters."""
+    from scipy import ndimage
+
+    g = np.asarray(gt_classes)
+    labels, n = ndimage.label((g >= 0) & (g < 50), structure=np.ones((3, 3), bool))
+    cells = np.bincount(labels.ravel(), minlength=n + 1)
+    cells[0] = 0
+    big = cells * resolution**2 >= MIN_SPACE_M2
+    big[0] = False
+    small = (cells > 0) & ~big
+    return big[labels], int(small.sum()), float(cells[small].sum() * resolution**2)
+
+
+def map_scores(probability: Array, observed: NDArray[np.bool_], gt_classes: NDArray[np.int8],
+               resolution: float | None = None) -> MapScores:
     """:class:`MapScores` of a probability grid with its *observed* mask against ground-truth classes of the same
     shape (−1 unknown, ≥ 50 occupied). Accuracy and F1 are read off the ROC's counts at every distinct
-    threshold, so the best of each is exact."""
+    threshold, so the best of each is exact. With the plan's *resolution* (m) the coverage leaves out
+    its specks (:func:`free_space`); without, it counts every free cell."""
     p = np.asarray(probability, dtype=float)
     obs = np.asarray(observed, dtype=bool)
     g = np.asarray(gt_classes)
@@ -102,7 +123,9 @@ def map_scores(probability: Array, observed: NDArray[np.bool_], gt_classes: NDAr
     accuracy = (tp + (N - fp)) / (P + N)
     f1 = 2 * tp / np.maximum(2 * tp + fp + (P - tp), 1e-300)
     a, f = int(np.argmax(accuracy)), int(np.argmax(f1))
-    return MapScores(auc, auc_observed, float((free & obs).sum() / max(N, 1)), float(accuracy[a]), float(thr[a]),
+    space = free if resolution is None else free & free_space(g, resolution)[0]
+    return MapScores(auc, auc_observed, float((space & obs).sum() / max(int(space.sum()), 1)), float(accuracy[a]),
+                     float(thr[a]),
                      float(f1[f]), float(thr[f]))
 
 

@@ -32,7 +32,7 @@ from registration.errors import ConfigError
 from .sensors import LaserSpec
 from .world import World
 
-__all__ = ["plan_path", "clearance_map", "sample_motion"]
+__all__ = ["plan_path", "clearance_map", "sample_motion", "Roadmap", "main_component", "pick_start", "string_pull"]
 
 
 def clearance_map(world: World) -> NDArray[np.float64]:
@@ -59,7 +59,7 @@ def _segment_safe(world: World, clear: NDArray[np.float64], a: NDArray[np.float6
     return bool(np.all(_clearance_at(world, clear, a + s * (b - a)) >= r_safe))
 
 
-def _string_pull(world: World, clear: NDArray[np.float64], pts: NDArray[np.float64], r_safe: float) -> NDArray[np.float64]:
+def string_pull(world: World, clear: NDArray[np.float64], pts: NDArray[np.float64], r_safe: float) -> NDArray[np.float64]:
     """Greedy line-of-sight shortcut of a polyline: keep a vertex only when the straight segment
     past it would leave the safe set."""
     if len(pts) <= 2:
@@ -93,32 +93,37 @@ def _trapezoid(amount: NDArray[np.float64], vmax: float, amax: float) -> tuple[N
 
 def sample_motion(polyline: NDArray[np.float64], heading0: float, max_speed: float, max_turn_rate: float,
                   dt: float, n: int | None = None, max_accel: float = 0.5,
-                  max_ang_accel: float = 2.0) -> tuple[NDArray[np.float64], float]:
+                  max_ang_accel: float = 2.0, pre_turns: NDArray[np.float64] | None = None,
+                  ) -> tuple[NDArray[np.float64], float]:
     """Turn-in-place-then-drive motion along *polyline* ``(M, 2)`` starting with heading *heading0*.
 
     Every turn and every straight segment is a rest-to-rest trapezoidal velocity profile
     (accelerations ≤ ``max_accel`` m/s², ``max_ang_accel`` rad/s²; speeds ≤ ``max_speed`` m/s,
-    ``max_turn_rate`` rad/s), so velocities are continuous. Returns ``(poses (K, 3), duration)``
-    with poses sampled at ``k·dt`` (all of them, or the first *n*; the robot rests at the end).
+    ``max_turn_rate`` rad/s), so velocities are continuous. *pre_turns* ``(M,)`` (rad, signed) adds a
+    look-around at vertex k: first turn by ``pre_turns[k]``, then (without wrapping, so the look is
+    undone the way it came) to segment k's heading. Returns ``(poses (K, 3), duration)`` with poses
+    sampled at ``k·dt`` (all of them, or the first *n*; the robot rests at the end).
     """
     seg = np.diff(polyline, axis=0)
     lens = np.linalg.norm(seg, axis=1)
     keep = lens > 1e-9
     seg, lens = seg[keep], lens[keep]
     starts = polyline[:-1][keep]
+    pre = np.zeros(len(seg)) if pre_turns is None else np.asarray(pre_turns, dtype=np.float64)[:-1][keep]
     if len(seg) == 0:  # standing still
         poses = np.tile([polyline[0, 0], polyline[0, 1], heading0], (1 if n is None else n, 1))
         return poses, 0.0
     headings = np.arctan2(seg[:, 1], seg[:, 0])
     prev = np.concatenate([[heading0], headings[:-1]])
-    turns = (headings - prev + np.pi) % (2 * np.pi) - np.pi
-    # primitives, interleaved: turn k, then drive k
+    turns = (headings - prev + np.pi) % (2 * np.pi) - np.pi - pre  # after the look, back the way it came
+    # primitives, interleaved: look k, turn k, then drive k (a look of 0 rad takes no time)
+    vp_pre, t_pre = _trapezoid(np.abs(pre), max_turn_rate, max_ang_accel)
     vp_turn, t_turn = _trapezoid(np.abs(turns), max_turn_rate, max_ang_accel)
     vp_drive, t_drive = _trapezoid(lens, max_speed, max_accel)
-    amount = np.column_stack([np.abs(turns), lens]).ravel()
-    vpeak = np.column_stack([vp_turn, vp_drive]).ravel()
-    acc = np.tile([max_ang_accel, max_accel], len(lens))
-    dur = np.column_stack([t_turn, t_drive]).ravel()
+    amount = np.column_stack([np.abs(pre), np.abs(turns), lens]).ravel()
+    vpeak = np.column_stack([vp_pre, vp_turn, vp_drive]).ravel()
+    acc = np.tile([max_ang_accel, max_ang_accel, max_accel], len(lens))
+    dur = np.column_stack([t_pre, t_turn, t_drive]).ravel()
     t_end = np.cumsum(dur)
     total = float(t_end[-1])
     k = int(math.floor(total / dt + 1e-9)) + 1 if n is None else n
@@ -132,19 +137,21 @@ def sample_motion(polyline: NDArray[np.float64], heading0: float, max_speed: flo
     done = np.where(tau > T - ta, L - 0.5 * a * (T - tau) ** 2, done)  # braking
     frac = np.clip(np.where(L > 0, done / np.where(L > 0, L, 1.0), 1.0), 0.0, 1.0)
     frac = np.where(t >= total, 1.0, frac)
-    seg_i = prim // 2
-    is_turn = prim % 2 == 0
-    th = np.where(is_turn, prev[seg_i] + frac * turns[seg_i], headings[seg_i])
-    pos = starts[seg_i] + np.where(is_turn, 0.0, frac)[:, None] * seg[seg_i]
+    seg_i = prim // 3
+    kind = prim % 3  # 0 look, 1 turn, 2 drive
+    th = np.where(kind == 0, prev[seg_i] + frac * pre[seg_i],
+                  np.where(kind == 1, prev[seg_i] + pre[seg_i] + frac * turns[seg_i], headings[seg_i]))
+    pos = starts[seg_i] + np.where(kind == 2, frac, 0.0)[:, None] * seg[seg_i]
     th = (th + np.pi) % (2 * np.pi) - np.pi
     return np.column_stack([pos, th]), total
 
 
-class _Roadmap:
+class Roadmap:
     """Coarse safe-cell graph of a world with Dijkstra queries."""
 
     def __init__(self, world: World, clear: NDArray[np.float64], r_safe: float) -> None:
         k = max(1, int(round(0.1 / world.resolution)))  # ≈ 0.1 m roadmap cells
+        self.block = k  # world cells per roadmap cell along each axis
         h, w = clear.shape
         hh, ww = -(-h // k), -(-w // k)
         pad = np.zeros((hh * k, ww * k))
@@ -181,6 +188,21 @@ class _Roadmap:
         nn = len(self.xy)
         self.graph = coo_matrix((np.concatenate([wv, wv]), (np.concatenate([r, c]), np.concatenate([c, r]))),
                                 shape=(nn, nn)).tocsr()
+
+
+def main_component(rm: "Roadmap") -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """The nodes of the roadmap's largest connected part and their clearance (m)."""
+    _, labels = connected_components(rm.graph, directed=False)
+    main = np.bincount(labels).argmax()
+    nodes = np.flatnonzero(labels == main)
+    node_clear = rm.clear.ravel()[np.flatnonzero(rm.ids.ravel() >= 0)][nodes]
+    return nodes, node_clear
+
+
+def pick_start(nodes: NDArray[np.int64], node_clear: NDArray[np.float64], rng: np.random.Generator) -> int:
+    """A random start node among the most open tenth of *nodes*."""
+    open_nodes = nodes[node_clear >= np.quantile(node_clear, 0.9)]
+    return int(rng.choice(open_nodes))
 
 
 def _out_and_back(out: NDArray[np.float64], heading0: float, v: float, w: float, dt: float,
@@ -239,16 +261,11 @@ def plan_path(
         max_speed = step / dt
     r_safe = robot_radius + margin
     clear = clearance_map(world)
-    rm = _Roadmap(world, clear, r_safe)
+    rm = Roadmap(world, clear, r_safe)
     if len(rm.xy) == 0:
         raise ConfigError(f"world {world.name!r} has no free space with {r_safe:.2f} m clearance for the robot")
-    # the largest connected part of the roadmap
-    _, labels = connected_components(rm.graph, directed=False)
-    main = np.bincount(labels).argmax()
-    nodes = np.flatnonzero(labels == main)
-    node_clear = rm.clear.ravel()[np.flatnonzero(rm.ids.ravel() >= 0)][nodes]
-    open_nodes = nodes[node_clear >= np.quantile(node_clear, 0.9)]
-    start = int(rng.choice(open_nodes))
+    nodes, node_clear = main_component(rm)
+    start = pick_start(nodes, node_clear, rng)
     # farthest-point sampling of coverage waypoints (Euclidean), preferring open places
     spacing = waypoint_spacing if waypoint_spacing is not None else min(0.6 * spec.range_max, 3.0)
     cand = nodes[node_clear >= min(r_safe + 0.2, np.quantile(node_clear, 0.5))]
@@ -277,7 +294,7 @@ def plan_path(
         src = int(wps_arr[a])
         while path[-1] != src:
             path.append(int(pred[a, path[-1]]))
-        return _string_pull(world, clear, rm.xy[np.asarray(path[::-1])], r_safe)
+        return string_pull(world, clear, rm.xy[np.asarray(path[::-1])], r_safe)
 
     def route(seq: list[int]) -> NDArray[np.float64]:
         parts = [leg(seq[i], seq[i + 1]) for i in range(len(seq) - 1)]
