@@ -286,6 +286,23 @@ def test_map_scores_in_closed_form():
     assert map_scores(perfect, only_free, gt).auc_observed is None
 
 
+def test_map_scores_coverage_leaves_out_specks_of_free_space():
+    """A 2 × 2 m free room (walled) and one free cell walled in beside it: at the plan's resolution the speck
+    is not free space, so a map that saw the room whole has coverage 1; counting every free cell, 1600/1601."""
+    from mapping.roc import free_space, map_scores
+
+    gt = np.full((44, 50), 100, dtype=np.int8)
+    gt[2:42, 2:42] = 0  # 40 × 40 cells of 5 cm
+    gt[20, 46] = 0  # the speck, behind the wall
+    space, n, area = free_space(gt, 0.05)
+    assert space.sum() == 1600 and n == 1 and area == pytest.approx(0.0025) and not space[20, 46]
+    obs = gt == 0
+    obs[20, 46] = False
+    p = np.where(gt == 0, 0.1, 0.9)
+    assert map_scores(p, obs, gt, 0.05).coverage == 1.0
+    assert map_scores(p, obs, gt).coverage == pytest.approx(1600 / 1601)
+
+
 def test_cli_map_plot_trajectory_draws_the_path(tmp_path):
     """`slam map --plot-trajectory` draws the robot's path on map.png: red pixels where the plain map has
     none, as many as a line along the path's length at the figure's scale."""

@@ -178,6 +178,12 @@ def test_cli_simulate_then_info(tmp_path):
     (["rooms", "--out", "a.mcap", "--sensor", "lidar9000"], "--sensor"),
     (["rooms", "--out", "a.mcap", "--odom-noise", "0.1,0.2"], "--odom-noise"),
     (["rooms", "--out", "a.mcap", "--scans", "0"], "--scans"),
+    (["rooms", "--out", "a.mcap", "--scans", "many"], "--scans"),
+    (["rooms", "--out", "a.mcap", "--laps", "0"], "--laps"),
+    (["rooms", "--out", "a.mcap", "--scans", "300", "--laps", "2"], "--laps"),
+    (["rooms", "--out", "a.mcap", "--robot-radius", "0"], "--robot-radius"),
+    (["rooms", "--out", "a.mcap", "--robot-radius", "nan"], "--robot-radius"),
+    (["rooms", "--out", "a.mcap", "--robot-radius", "5"], "radius 5.00 m"),
 ])
 def test_cli_bad_arguments(tmp_path, args, what, monkeypatch, capsys):
     """Bad arguments give one `error:` line naming the problem, exit status 2 and no output file."""

@@ -118,7 +118,7 @@ def odometry_from_ground_truth(xyt: ArrayLike, alphas: Sequence[float], rng: np.
 def simulate(
     world: World,
     *,
-    n_scans: int,
+    n_scans: int | None,
     spec: LaserSpec,
     seed: int,
     range_noise: float | None = None,
@@ -127,8 +127,10 @@ def simulate(
     max_speed: float = 0.5,
     max_turn_rate: float = 1.0,
     robot_radius: float = 0.2,
+    laps: int = 1,
 ) -> SimulatedLog:
-    """Simulate *n_scans* scans of *spec* along a planned closed tour through *world*.
+    """Simulate *n_scans* scans of *spec* along a planned closed tour through *world*; with
+    ``n_scans=None``, exactly the scans of *laps* coverage tours (:func:`.coverage.coverage_tour`).
 
     Args:
         range_noise: Gaussian range σ (m); the preset's ``noise_std`` when None.
@@ -140,8 +142,10 @@ def simulate(
     from *seed*, so changing a noise level does not change the path. Each scan is taken
     instantaneously at its stamp (no motion during the sweep, so no deskewing is needed).
     """
-    if n_scans < 1:
+    if n_scans is not None and n_scans < 1:
         raise ConfigError(f"--scans must be >= 1, got {n_scans}")
+    if n_scans is not None and laps != 1:
+        raise ConfigError("--laps goes with --scans auto (a fixed number of scans sets its own revisits)")
     sigma = spec.noise_std if range_noise is None else float(range_noise)
     if sigma < 0 or not np.isfinite(sigma):
         raise ConfigError(f"range noise must be a finite number >= 0, got {range_noise}")
@@ -152,8 +156,15 @@ def simulate(
     if b_T_s.shape != (4, 4) or not geo.is_pose(b_T_s):
         raise ConfigError("base_T_sensor must be a 4×4 rigid transform")
     path_ss, range_ss, odom_ss = np.random.SeedSequence(seed).spawn(3)
-    xyt = plan_path(world, n_scans, spec, np.random.default_rng(path_ss), max_speed=max_speed,
-                    max_turn_rate=max_turn_rate, robot_radius=robot_radius)
+    if n_scans is None:
+        from .coverage import coverage_tour  # compiles the visibility kernels (numba) on first use
+
+        xyt = coverage_tour(world, spec, np.random.default_rng(path_ss), robot_radius=robot_radius, laps=laps,
+                            max_speed=max_speed, max_turn_rate=max_turn_rate, base_T_sensor=b_T_s).poses
+        n_scans = len(xyt)
+    else:
+        xyt = plan_path(world, n_scans, spec, np.random.default_rng(path_ss), max_speed=max_speed,
+                        max_turn_rate=max_turn_rate, robot_radius=robot_radius)
     gt = geo.xytheta_to_matrix(xyt)
     sensor_xyt = geo.matrix_to_xytheta(gt @ b_T_s)
     ranges = cast_rays(world, sensor_xyt, spec, rng=np.random.default_rng(range_ss), range_noise=sigma)

@@ -128,8 +128,8 @@ def eval_map(
     plot: Path | None = typer.Option(None, "--plot", help="Save the ROC curve as a PNG."),
 ) -> None:
     """Scores of a map against a ground truth (unknown ground-truth cells ignored): ``auc`` (unobserved cells
-    at p = 0.5), ``auc_observed`` (the cells the map observed), ``coverage`` (the ground truth's free cells
-    observed) and the best-threshold ``accuracy`` and ``f1`` (occupied class)."""
+    at p = 0.5), ``auc_observed`` (the cells the map observed), ``coverage`` (the ground truth's free space
+    observed, isolated specks of free cells left out) and the best-threshold ``accuracy`` and ``f1`` (occupied class)."""
     from mapping.mapserver import read_map_server
     from mapping.occupancy_map import load_npz
     from mapping.roc import map_roc, map_scores, observed_on_grid, resample_to_grid
@@ -144,7 +144,7 @@ def eval_map(
         raise MapFormatError(gt_yaml, "origin", "a rotated ground-truth origin (yaw ≠ 0) is not supported")
     p = resample_to_grid(m.probability, m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
     obs = observed_on_grid(m.observed, m.origin, m.resolution, gt.shape, gt.origin[:2], gt.resolution)
-    sc = map_scores(p, obs, gt.classes)
+    sc = map_scores(p, obs, gt.classes, gt.resolution)
     auc = sc.auc
     typer.echo(f"auc: {auc:.6f}")
     typer.echo(f"auc_observed: {'–' if sc.auc_observed is None else f'{sc.auc_observed:.6f}'}")

@@ -11,7 +11,9 @@ import math
 from enum import Enum
 from typing import Callable
 
-__all__ = ["real", "alphas", "Backend"]
+__all__ = ["real", "alphas", "scan_count", "AUTO", "Backend"]
+
+AUTO = 0  # scan_count's value for "auto"
 
 
 class Backend(str, Enum):
@@ -37,6 +39,22 @@ def real(low: float | None = None, *, above: bool = False) -> Callable[[str], fl
 
     parse.__name__ = "float"  # click shows it as the FLOAT metavar
     return parse
+
+
+def scan_count(text: str | int) -> int:
+    """``auto`` (→ :data:`AUTO`) or an integer ≥ 1."""
+    if str(text).strip().lower() == "auto":
+        return AUTO
+    try:
+        v = int(str(text))
+    except ValueError:
+        raise ValueError(f"{text!r} is neither 'auto' nor a whole number") from None
+    if v < 1:
+        raise ValueError(f"{v} is not >= 1")
+    return v
+
+
+scan_count.__name__ = "INTEGER|auto"
 
 
 def alphas(text: str) -> tuple[float, ...]:
