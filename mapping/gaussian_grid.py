@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from .bcm import MIN_VARIANCE, mean_variance, probit_squash
 from .config import GPConfig
-from .gp import GPHyperparameters, fit_hyperparameters
+from .gp import GaussianProcess, GPHyperparameters, fit_hyperparameters
 from .grid import GridGeometry
 
 Array = NDArray[np.float64]
@@ -57,7 +57,10 @@ def initial_hyperparameters(cfg: GPConfig, X: Array, y: Array, beams: NDArray[np
     beam keeps all its samples) so that neighbouring occupied/free samples stay together — thinning
     the flat sample list breaks those pairs and the fit then sees uncorrelated labels. An optimum
     whose signal variance is below the noise variance (a noise-only model that would predict μ ≈ 0
-    everywhere) is rejected with a warning in favour of the configured values.
+    everywhere) is rejected with a warning in favour of the configured values, and so is one that
+    separates the samples' own labels worse than the configured values do (:func:`label_accuracy`):
+    on sparse outdoor scans the likelihood's optimum can be a smooth, noisy model (ℓ ≈ 13–17 m,
+    σf ≈ σn) that predicts most hits as free, and the map then has no walls.
     """
     start = GPHyperparameters(cfg.nu, cfg.length_scale, cfg.sigma_f, cfg.sigma_n)
     if cfg.hyperparameters == "fixed" or len(X) < 3:
@@ -73,4 +76,17 @@ def initial_hyperparameters(cfg: GPConfig, X: Array, y: Array, beams: NDArray[np
         warnings.warn(f"GP hyperparameter fit gave a noise-only model ({fit}); using the configured values {start}",
                       stacklevel=2)
         return start
+    if label_accuracy(fit, X, y) < label_accuracy(start, X, y):
+        warnings.warn(f"GP hyperparameter fit ({fit}) tells the first scan's hits from its free samples worse than "
+                      f"the configured values; using {start}", stacklevel=2)
+        return start
     return fit
+
+
+def label_accuracy(hyp: GPHyperparameters, X: Array, y: Array) -> float:
+    """Balanced accuracy of the GP posterior mean's sign on its own training labels (±1): the mean of the
+    fractions of occupied and of free samples it classifies right."""
+    mu, _ = GaussianProcess(hyp).fit(X, y).predict(X, return_var=False)
+    right = np.sign(mu) == np.sign(y)
+    return float(np.mean([right[y > 0].mean() if (y > 0).any() else 1.0,
+                          right[y < 0].mean() if (y < 0).any() else 1.0]))
