@@ -11,14 +11,6 @@ Rasterisation is vectorised and exact for these star-shaped fans: a cell at bear
 range at which the ray φ crosses that ring's edge vᵢvᵢ₊₁, ρ_ring = (vᵢ × e)/(u × e), e = vᵢ₊₁ − vᵢ.
 The outer ring is pushed out by half a cell diagonal so that the cell containing a hit — whose
 centre usually lies just behind it — belongs to region B, as in a cell-space polygon fill.
-
-A polygon edge between two neighbouring beams assumes one surface between them. Where their ranges
-jump by more than a surface seen at 10° incidence could (the adaptive breakpoint of Borges & Aldon,
-"Line extraction in 2D range images for mobile robotics", JIRS 2004: ``D = r·sin Δφ / sin(λ − Δφ) +
-3 σ``, λ = 10°), the sector is split at its middle angle instead, each half ending at its own beam's
-range (what each beam saw, as a ray-casting model has it): the wedge behind a near hit was not seen,
-and filling it as free erased isolated hits (poles, façades seen between no-returns outdoors) under
-the free space of their neighbours.
 """
 
 from __future__ import annotations
@@ -54,19 +46,6 @@ def ring_training_set(bs: BeamSamples, stride: int = 1) -> tuple[Array, Array, N
     return X, y, np.concatenate([hb, ib]).astype(np.int64)
 
 
-BREAKPOINT_INCIDENCE_RAD = np.deg2rad(10.0)  # λ of the adaptive breakpoint detector
-
-
-def jump_sectors(bs: BeamSamples) -> NDArray[np.bool_]:
-    """Sectors (between beams i and i+1) whose ranges jump: no single surface spans them (module docstring)."""
-    r = bs.outer
-    dphi = np.diff(bs.angles)
-    near = np.minimum(r[:-1], r[1:])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        dmax = near * np.sin(dphi) / np.sin(np.maximum(BREAKPOINT_INCIDENCE_RAD - dphi, 1e-6)) + 3.0 * bs.step
-    return np.abs(np.diff(r)) > dmax
-
-
 def fan_regions(bs: BeamSamples, x: Array, y: Array, outer_margin: float
                 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.int64]]:
     """Regions A and B (masks) and the beam sector of cells at sensor-frame positions (x, y)."""
@@ -90,10 +69,6 @@ def fan_regions(bs: BeamSamples, x: Array, y: Array, outer_margin: float
     cand, xc, yc, phi = cand[fov], xc[fov], yc[fov], phi[fov]
     i = np.clip(np.searchsorted(a32, phi, "right") - 1, 0, len(a) - 2)
     ca, sa = np.cos(a), np.sin(a)
-    in_jump = np.flatnonzero(jump_sectors(bs)[i])  # candidate cells in sectors whose ranges jump
-    ij = i[in_jump]
-    first_half = phi[in_jump] < (0.5 * (a[:-1] + a[1:])).astype(np.float32)[ij]
-    rho2j = xc[in_jump] ** 2 + yc[in_jump] ** 2
 
     def inside(r: Array) -> NDArray[np.bool_]:
         # edge e_i = v_{i+1} − v_i of the ring; the cell is inside iff ρ·(u × e_i) < v_i × e_i, i.e.
@@ -101,11 +76,7 @@ def fan_regions(bs: BeamSamples, x: Array, y: Array, outer_margin: float
         ex = r[1:] * ca[1:] - r[:-1] * ca[:-1]
         ey = r[1:] * sa[1:] - r[:-1] * sa[:-1]
         num = (r[:-1] * (ca[:-1] * ey - sa[:-1] * ex)).astype(np.float32)
-        out = xc * ey.astype(np.float32)[i] - yc * ex.astype(np.float32)[i] < num[i]
-        if in_jump.size:  # a jump sector is split at its middle angle, each half ending at its own beam's range
-            own = np.where(first_half, r[:-1][ij], r[1:][ij]).astype(np.float32)
-            out[in_jump] = rho2j < own * own
-        return out
+        return xc * ey.astype(np.float32)[i] - yc * ex.astype(np.float32)[i] < num[i]
 
     a_in = inside(bs.inner)
     b_in = inside(outer) & ~a_in

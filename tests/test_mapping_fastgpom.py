@@ -203,29 +203,6 @@ def test_fit_subset_thinned_by_beam(monkeypatch):
         assert both or not (bs.hit[b] and bs.inner[b] > 0)
 
 
-def test_a_lone_hit_between_no_returns_stays_in_region_b():
-    """One beam hits a pole at 3 m; its neighbours have no return within 10 m. The sectors on either side
-    jump (no surface spans them), so the pole's cell is region B (the GP predicts it), never region A
-    (asserted free by the neighbours' rays); a continuous wall's sectors do not jump."""
-    from mapping.fastgpom import jump_sectors
-
-    angles = np.deg2rad(np.arange(-10, 11, 1.0))
-    ranges = np.full(len(angles), np.inf)
-    ranges[10] = 3.0
-    frame = Frame(0.0, np.array([[3.0, 0.0]]), angles=angles, ranges=ranges, no_return=~np.isfinite(ranges),
-                  max_range=10.0, min_range=0.06)
-    bs = beam_samples(frame, 0.05)
-    jump = jump_sectors(bs)
-    assert jump[9] and jump[10] and jump.sum() == 2
-    x = 3.0 * np.cos(np.deg2rad([0.0, 0.3, -0.3]))
-    y = 3.0 * np.sin(np.deg2rad([0.0, 0.3, -0.3]))
-    A, B, _ = fan_regions(bs, x, y, 0.5 * np.sqrt(2) * 0.05)
-    assert B.all() and not A.any()
-    # a flat wall 3 m ahead, seen across the same beams: no jumps
-    wall = Frame(0.0, np.zeros((0, 2)), angles=angles, ranges=3.0 / np.cos(angles), max_range=10.0, min_range=0.06)
-    assert not jump_sectors(beam_samples(wall, 0.05)).any()
-
-
 def test_a_fit_that_calls_hits_free_gives_way_to_the_configured_values():
     """On a ring whose hits the likelihood's optimum would smooth away (the fit is forced here to a long,
     noisy model), the configured values are used instead, with a warning; a fit that separates the
