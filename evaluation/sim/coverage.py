@@ -54,6 +54,7 @@ MAX_PLANNING_RANGE_M = 10.0  # a long-range laser plans with this much (more vie
 COVER_FRACTION = 0.995  # of the coverable free space (weighted by world cells)
 MIN_REGION_M2 = 0.5  # smaller unreachable pieces (corners the robot's outline cannot enter) are not reported
 REPAIR_ROUNDS = 3
+DIJKSTRA_SOURCES = 16  # viewpoints whose geodesic distances are computed together (memory: 16 × roadmap nodes)
 LOOK_MARGIN_RAD = 0.05  # a look-around brings its targets this far inside the field of view
 
 
@@ -300,14 +301,21 @@ class _Planner:
              ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[int]]:
         """Polyline, per-vertex look-arounds and the visiting order of the *chosen* candidates."""
         vp_nodes = self.cands[np.asarray(chosen)]
-        dist, pred = dijkstra(self.rm.graph, directed=False, indices=vp_nodes, return_predecessors=True)
-        order = _order(dist[:, vp_nodes])
+        # geodesic distances between viewpoints, a few sources at a time (a full (K, nodes) matrix of a
+        # large plan would not fit in memory); each leg's path by a search stopped at its own length
+        dist = np.empty((len(vp_nodes), len(vp_nodes)))
+        for k in range(0, len(vp_nodes), DIJKSTRA_SOURCES):
+            block = dijkstra(self.rm.graph, directed=False, indices=vp_nodes[k: k + DIJKSTRA_SOURCES])
+            dist[k: k + DIJKSTRA_SOURCES] = block[:, vp_nodes]
+        order = _order(dist)
         seq = order + [order[0]]
         legs = []
         for a, b in zip(seq[:-1], seq[1:]):
+            _, pred = dijkstra(self.rm.graph, directed=False, indices=int(vp_nodes[a]), return_predecessors=True,
+                               limit=dist[a, b] * (1 + 1e-9) + 1e-9)
             path = [int(vp_nodes[b])]
             while path[-1] != int(vp_nodes[a]):
-                path.append(int(pred[a, path[-1]]))
+                path.append(int(pred[path[-1]]))
             legs.append(string_pull(self.world, self.clear, self.rm.xy[np.asarray(path[::-1])], self.r_safe))
         poly = np.vstack([legs[0]] + [leg[1:] for leg in legs[1:]])
         starts = np.cumsum([0] + [len(leg) - 1 for leg in legs[:-1]])  # polyline vertex of each viewpoint
