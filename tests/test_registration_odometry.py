@@ -120,12 +120,15 @@ def test_kiss_on_kitti_returns_6dof_steps():
         assert s.prev_T_curr[0, 3] > 0.5
 
 
-@pytest.mark.xfail(reason="issue 3 target (end-point drift ≤ 1 %) not met on this 10-frame sample: measured "
-                          "11.8 %; KISS-ICP and our point-to-plane ICP both estimate 0.66–0.82 m steps "
-                          "where the ground truth says 0.86 m (see the registration report)", strict=False)
+@pytest.mark.xfail(reason="issue 25: against SemanticKITTI's poses, KISS-ICP's end-point drift over the 10 frames "
+                          "of kitti_mini 00 is 1.4 % (01: 1.0 %, 07: 3.5 %, 10: 19.6 %); its first steps err most",
+                   strict=False)
 def test_kiss_kitti_end_point_drift_below_one_percent():
-    """Acceptance: KISS-ICP end-point drift over the 10 KITTI frames ≤ 1 % of the distance travelled."""
-    frames = _kitti_frames()
+    """Acceptance: KISS-ICP end-point drift over kitti_mini's 10 frames of sequence 00 ≤ 1 % of the distance
+    travelled, against the SemanticKITTI poses (not the official ones, a placeholder over frames 0–14)."""
+    from slam.logs import open_log
+
+    frames = list(open_log(shared_path("kitti_mini", "sequences", "00")).frames())
     odo = KissOdometry(KissOdometryConfig(compute_covariance=False))
     odo.run(frames)
     gt = np.array([f.ground_truth for f in frames])

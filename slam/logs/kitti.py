@@ -4,7 +4,10 @@ Layout (Geiger, Lenz, Urtasun, CVPR 2012, odometry devkit): ``sequences/NN/velod
 holds float32 little-endian ``(x, y, z, reflectance)`` rows in the Velodyne frame (x forward,
 y left, z up; metres); ``sequences/NN/calib.txt`` has ``Tr`` (3×4, Velodyne → cam0);
 ``sequences/NN/times.txt`` one stamp (s) per frame; ``poses/NN.txt`` (beside ``sequences/``)
-one row-major 3×4 pose of cam0 per frame, in the cam0 frame of frame 0.
+one row-major 3×4 pose of cam0 per frame, in the cam0 frame of frame 0. The SemanticKITTI layout
+(Behley et al., ICCV 2019) keeps its poses, same format, in ``sequences/NN/poses.txt``; when both are
+there that one is used: the official ground truth is a constant-velocity placeholder over the first
+15 frames of sequence 00 (see ../shared/data/kitti_mini/SOURCE.md), SemanticKITTI's agrees with the scans.
 
 Ground truth is expressed in the Velodyne frame: ``T_velo(k) = Tr⁻¹ · P_k · Tr`` (Tr, P_k padded
 to 4×4), so that ``T_velo(0)`` is the identity when ``P_0`` is. Line k of the poses file belongs
@@ -185,9 +188,13 @@ class KittiReader(LogReader):
 
     @property
     def poses_path(self) -> Path | None:
-        """``poses/NN.txt`` beside ``sequences/`` (``sequences/NN/../../poses/NN.txt``)."""
+        """The ground-truth poses: ``sequences/NN/poses.txt`` (SemanticKITTI) when it exists, else ``poses/NN.txt``
+        beside ``sequences/`` (``sequences/NN/../../poses/NN.txt``, the odometry devkit's)."""
         if self.sequence_dir is None:
             return None
+        semantic = self.sequence_dir / "poses.txt"
+        if semantic.is_file():
+            return semantic
         return self.sequence_dir.parent.parent / "poses" / f"{self.sequence_dir.name}.txt"
 
     def ground_truth_velo(self) -> np.ndarray | None:
@@ -253,7 +260,7 @@ class KittiReader(LogReader):
             yield frame
 
     def has_ground_truth(self) -> bool:
-        """True when ``poses/NN.txt`` and ``calib.txt`` are there (the frames then carry ground truth)."""
+        """True when a poses file (:attr:`poses_path`) and ``calib.txt`` are there (the frames then carry ground truth)."""
         return self.ground_truth_velo() is not None
 
     def info(self) -> LogInfo:
