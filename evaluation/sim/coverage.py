@@ -114,9 +114,11 @@ def _reachable_footprint(world: World, rm: Roadmap, nodes: NDArray[np.int64], r_
     return ndimage.binary_dilation(fine, structure=np.ones((3, 3), bool), iterations=steps, mask=world.free) | fine
 
 
-def unreachable_regions(world: World, footprint: NDArray[np.bool_], min_area_m2: float = MIN_REGION_M2) -> list[Region]:
-    """Connected pieces (8-neighbours) of the plan's space outside *footprint* of at least *min_area_m2*."""
-    rest = plan_space(world)[0] & ~footprint
+def unreachable_regions(world: World, footprint: NDArray[np.bool_], min_area_m2: float = MIN_REGION_M2,
+                        space: NDArray[np.bool_] | None = None) -> list[Region]:
+    """Connected pieces (8-neighbours) of the plan's *space* (:func:`plan_space` unless given) outside
+    *footprint* of at least *min_area_m2*."""
+    rest = (plan_space(world)[0] if space is None else space) & ~footprint
     labels, n = ndimage.label(rest, structure=np.ones((3, 3), bool))
     if n == 0:
         return []
@@ -372,4 +374,4 @@ def coverage_tour(world: World, spec: LaserSpec, rng: np.random.Generator, *, ro
     vps = p.rm.xy[p.cands[np.asarray([chosen[i] for i in order])]]
     return CoverageTour(poses=poses, duration_s=duration, length_m=length, viewpoints=vps,
                         coverage=float((seen & p.space).sum() / max(int(p.space.sum()), 1)), laps=laps,
-                        unreachable=unreachable_regions(world, p.footprint))
+                        unreachable=unreachable_regions(world, p.footprint, space=p.space))

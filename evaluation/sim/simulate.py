@@ -19,7 +19,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterator, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,6 +32,9 @@ from .path import plan_path
 from .raycast import cast_rays
 from .sensors import LaserSpec
 from .world import World
+
+if TYPE_CHECKING:
+    from .coverage import CoverageTour
 
 __all__ = ["SimulatedLog", "simulate", "write_simulated_log", "odometry_from_ground_truth", "DEFAULT_ODOM_NOISE",
            "START_STAMP"]
@@ -67,6 +70,7 @@ class SimulatedLog:
     range_noise: float = 0.0
     odom_noise: tuple[float, float, float, float] = DEFAULT_ODOM_NOISE
     seed: int = 0
+    tour: "CoverageTour | None" = None  # the coverage tour (with its coverage and unreachable space) when planned
 
     def __len__(self) -> int:
         return int(len(self.stamps))
@@ -159,10 +163,11 @@ def simulate(
     if n_scans is None:
         from .coverage import coverage_tour  # compiles the visibility kernels (numba) on first use
 
-        xyt = coverage_tour(world, spec, np.random.default_rng(path_ss), robot_radius=robot_radius, laps=laps,
-                            max_speed=max_speed, max_turn_rate=max_turn_rate, base_T_sensor=b_T_s).poses
-        n_scans = len(xyt)
+        tour = coverage_tour(world, spec, np.random.default_rng(path_ss), robot_radius=robot_radius, laps=laps,
+                             max_speed=max_speed, max_turn_rate=max_turn_rate, base_T_sensor=b_T_s)
+        xyt, n_scans = tour.poses, len(tour.poses)
     else:
+        tour = None
         xyt = plan_path(world, n_scans, spec, np.random.default_rng(path_ss), max_speed=max_speed,
                         max_turn_rate=max_turn_rate, robot_radius=robot_radius)
     gt = geo.xytheta_to_matrix(xyt)
@@ -171,7 +176,8 @@ def simulate(
     odom = geo.xytheta_to_matrix(odometry_from_ground_truth(xyt, alphas, np.random.default_rng(odom_ss)))
     stamps = START_STAMP + np.arange(n_scans) * spec.period
     return SimulatedLog(world=world, spec=spec, stamps=stamps, ground_truth=gt, odometry=odom, angles=spec.angles(),
-                        ranges=ranges, base_T_sensor=b_T_s, range_noise=sigma, odom_noise=alphas, seed=seed)
+                        ranges=ranges, base_T_sensor=b_T_s, range_noise=sigma, odom_noise=alphas, seed=seed,
+                        tour=tour)
 
 
 def map_paths(mcap_path: str | Path) -> tuple[Path, Path]:

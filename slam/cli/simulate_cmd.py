@@ -57,8 +57,11 @@ def simulate(
     sim = run_sim(w, n_scans=None if scans == AUTO else scans, spec=LASER_PRESETS[sensor], seed=seed,
                   range_noise=range_noise, odom_noise=alphas, robot_radius=robot_radius, laps=laps)
     space, n_specks, specks_m2 = plan_space(w)
-    coverage = scan_coverage(w, geo.matrix_to_xytheta(sim.sensor_poses()), sim.spec, space)
-    unreachable = unreachable_space(w, robot_radius)
+    if sim.tour is not None:  # the coverage tour measured both already
+        coverage, unreachable = sim.tour.coverage, sim.tour.unreachable
+    else:
+        coverage = scan_coverage(w, geo.matrix_to_xytheta(sim.sensor_poses()), sim.spec, space)
+        unreachable = unreachable_space(w, robot_radius)
     write_simulated_log(sim, out)
     yaml_path, _ = map_paths(out)
     gt = sim.ground_truth[:, :2, 3]
