@@ -215,3 +215,42 @@ def score_at(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array) -> flo
     moved = np.stack([c * pts[:, 0] - s * pts[:, 1] + x, s * pts[:, 0] + c * pts[:, 1] + y], axis=-1)
     cells = pyramid.cells(moved[None]).astype(np.int32)
     return float(pyramid.score_candidates(0, cells, np.zeros(1, np.int64), np.zeros((1, 2), np.int64))[0])
+
+
+def ambiguity(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array, window_m: float, ratio: float,
+              radius_cells: int = 3, headings: int = 2) -> Array:
+    """How far the scan's score surface lets its pose slide: the second moment ``(3, 3)`` about the planar
+    4×4 *pose* of the poses within ±*window_m* (x and y, cells of the pyramid) and ±*headings* angular
+    steps whose score reaches *ratio* × the best of them, in the right-perturbation tangent of *pose*
+    (δ = (Rᵀ Δt, Δθ)); zero when every such pose lies within *radius_cells* cells (and the heading steps)
+    of *pose*, i.e. the surface has one sharp peak there.
+
+    The registration's Fisher information is the curvature of the one minimum ICP reached; in a corridor
+    that minimum is sharp across the corridor and every shift along it scores about as well, so a step
+    matched a metre along it still claims centimetres. The level set of the correlative score surface
+    (Olson, "Real-time correlative scan matching", ICRA 2009, §IV: the covariance of the match from the
+    cost surface) shows the slide; its second moment about *pose* covers a second peak as well."""
+    pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
+    if len(pts) < 3:
+        raise DegenerateInputError("the score surface needs at least 3 scan points")
+    x0, y0, th0 = G.matrix_to_xytheta(np.asarray(pose))
+    res = pyramid.resolution
+    step = angular_step(pts, res)
+    thetas = th0 + step * np.arange(-headings, headings + 1)
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    rotated = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
+    cells = pyramid.cells(rotated).astype(np.int32)
+    w = int(np.ceil(window_m / res))
+    o = np.arange(-w, w + 1)
+    ox, oy = np.meshgrid(o, o, indexing="ij")
+    n = ox.size
+    rot = np.repeat(np.arange(len(thetas), dtype=np.int64), n)
+    offsets = np.tile(np.stack([ox.ravel(), oy.ravel()], axis=1), (len(thetas), 1)).astype(np.int64)
+    scores = pyramid.score_candidates(0, cells, rot, offsets)
+    near = scores >= ratio * scores.max()
+    if not np.any(near) or np.abs(offsets[near]).max() <= radius_cells:
+        return np.zeros((3, 3))
+    d = offsets[near] * res
+    R0 = G.xytheta_to_matrix(0.0, 0.0, th0)[:2, :2]
+    delta = np.column_stack([d @ R0, thetas[rot[near]] - th0])  # rows Rᵀd: the right-perturbation translation
+    return delta.T @ delta / len(delta)

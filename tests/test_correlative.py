@@ -146,3 +146,62 @@ def test_degenerate_inputs_raise():
     pyr = C.LikelihoodPyramid(np.array([[0.0, 0.0], [1.0, 0.0]]))
     with pytest.raises(DegenerateInputError):
         C.match(np.zeros((2, 2)), pyr, np.eye(4), 1.0, 0.1)
+
+
+def corridor(rng: np.random.Generator, n: int = 800, length_m: float = 30.0) -> np.ndarray:
+    """Two parallel walls 2 m apart along x, jittered off the grid: nothing fixes a shift along x."""
+    x = rng.uniform(-length_m / 2, length_m / 2, n)
+    y = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    return np.column_stack([x, y]) + rng.normal(0, 0.003, (n, 2)) + 0.0137
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ambiguity_is_zero_for_a_sharp_match(seed):
+    """In a room with an inner wall and a pillar only the true pose scores best: no slide."""
+    rng = np.random.default_rng(seed)
+    walls = room(rng)
+    pose = G.xytheta_to_matrix(4.0, 3.0, rng.uniform(-np.pi, np.pi))
+    scan = G.transform_points(G.inverse(pose), walls[rng.choice(len(walls), 300, replace=False)])
+    pyr = C.LikelihoodPyramid(walls, 0.05, 0.05, levels=0)
+    assert np.array_equal(C.ambiguity(scan, pyr, pose, 1.0, 0.9), np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("heading", [0.0, 0.7, -2.1, np.pi])
+def test_ambiguity_of_a_corridor_lies_along_it_in_the_scan_frame(heading):
+    """A scan of a long corridor slides along it: the shifts within the ±w square window score alike, so
+    the second moment along the corridor is that of a uniform spread over the corridor's chord of the
+    square, L²/3 with L = w / max(|cos h|, |sin h|) at heading h (to the grid's discretisation), and
+    nothing across it. The corridor runs along the scan's own x whatever the heading (right perturbation)."""
+    rng = np.random.default_rng(3)
+    pose = G.xytheta_to_matrix(2.0, -1.0, heading)
+    scan = corridor(rng, 300, length_m=12.0)  # the sensor sees 12 m of it, the map holds 30 m
+    walls = G.transform_points(pose, corridor(rng, 2000))
+    pyr = C.LikelihoodPyramid(walls, 0.05, 0.05, levels=0)
+    w = 1.0
+    S = C.ambiguity(scan, pyr, pose, w, 0.9)
+    chord = w / max(abs(np.cos(heading)), abs(np.sin(heading)))
+    assert S[0, 0] == pytest.approx(chord**2 / 3, rel=0.15)
+    assert S[1, 1] < 0.05**2
+    assert abs(S[2, 2]) < np.radians(1.0) ** 2
+
+
+def test_ambiguity_covers_a_second_peak():
+    """The same posts twice, 0.8 m apart along x: a scan of one set also fits the other, so the second
+    moment along x is the other peak's share of the near-best poses times 0.8², between a quarter and a
+    half of 0.8² for two peaks of one or two grid poses each."""
+    rng = np.random.default_rng(4)
+    posts = np.array([[0.0, 0.0], [0.0, 1.5], [0.4, 2.2], [-0.3, 0.9]])
+    ring = np.vstack([posts + rng.normal(0, 0.002, posts.shape) for _ in range(40)])
+    walls = np.vstack([ring, ring + [0.8, 0.0]]) + 0.0137
+    pose = G.xytheta_to_matrix(-1.0, 1.0, 0.0)
+    scan = G.transform_points(G.inverse(pose), ring + 0.0137)
+    pyr = C.LikelihoodPyramid(walls, 0.05, 0.05, levels=0)
+    S = C.ambiguity(scan, pyr, pose, 1.0, 0.9)
+    assert 0.8**2 / 4 <= S[0, 0] <= 0.8**2 / 2
+    assert S[1, 1] < 0.05**2
+
+
+def test_ambiguity_rejects_too_few_points():
+    pyr = C.LikelihoodPyramid(np.array([[0.0, 0.0], [1.0, 0.0]]))
+    with pytest.raises(DegenerateInputError):
+        C.ambiguity(np.zeros((2, 2)), pyr, np.eye(4), 1.0, 0.9)

@@ -145,8 +145,8 @@ def test_edge_covariance_grows_with_the_scans_own_residuals(noise):
     rng = np.random.default_rng(2)
     ang = np.linspace(-1.5, 1.5, 400)
     room = np.c_[4.0 * np.cos(ang), 3.0 * np.sin(ang) + 0.5 * np.cos(3 * ang)]  # a curved wall, well conditioned
-    prev = SimpleNamespace(points=room, base_T_sensor=np.eye(4))
-    kf = SimpleNamespace(points=room + rng.normal(0.0, noise, room.shape), base_T_sensor=np.eye(4))
+    prev = SimpleNamespace(id=0, points=room, base_T_sensor=np.eye(4))
+    kf = SimpleNamespace(id=1, points=room + rng.normal(0.0, noise, room.shape), base_T_sensor=np.eye(4))
     fe = _front()
     posterior, prior = fe._edge_covariance(prev, kf, np.eye(4))
     ratio = float(np.trace(posterior) / np.trace(prior))
@@ -179,3 +179,51 @@ def test_on_a_simulated_log_the_calibration_scales_follow_the_wheel_noise(tmp_pa
         scales[alpha] = (cal.scale_translation, cal.scale_rotation)
     (t_lo, r_lo), (t_hi, r_hi) = scales[0.002], scales[0.05]
     assert t_hi > 2 * t_lo and 3 < r_hi / r_lo < 8, scales
+
+
+class _Scripted:
+    """An odometry source that reports given sensor poses (the front end's bookkeeping is what is tested)."""
+
+    def __init__(self, poses: list[np.ndarray]) -> None:
+        self.poses, self.n = poses, 0
+
+    def update(self, frame):
+        from registration.odometry import OdometryStep
+        pose, self.n = self.poses[self.n], self.n + 1
+        return OdometryStep(frame.stamp, frame.index, pose, pose @ G.inverse(frame.base_T_sensor), np.eye(4), None)
+
+
+@pytest.mark.parametrize("mount_deg", [0.0, 90.0, 30.0])
+@pytest.mark.parametrize("with_wheels", [False, True])
+def test_an_edge_in_a_corridor_without_wheels_is_uncertain_along_it(mount_deg, with_wheels):
+    """Two keyframes 0.5 m apart in a 2 m wide corridor: the registration pins the step across the corridor, the
+    score surface lets it slide ±1 m along it. Without wheel odometry the edge covariance (base frame) is then
+    largest along the corridor, at about the uniform spread's (1 m)²/3 (the mounting turns the sensor's corridor
+    axis into the base's), and stays the registration's across it. With wheel odometry the wheel edge bounds
+    the slide and the registration edge keeps its own covariance."""
+    from registration.frame import Frame
+    rng = np.random.default_rng(5)
+
+    def walls(n: int = 3000) -> np.ndarray:  # along the sensor's x at keyframe 0, 2 cm apart on each wall
+        x = rng.uniform(-15, 15, n)
+        jamb = np.c_[np.full(n // 50, 3.0), rng.uniform(0.8, 1.0, n // 50)]  # a door jamb: 2 % of the points fix x, barely
+        return np.vstack([np.c_[x, np.where(rng.random(n) < 0.5, -1.0, 1.0)], jamb]) + 0.0137
+
+    mount = G.xytheta_to_matrix(0.3, 0.1, np.radians(mount_deg))
+    step = G.xytheta_to_matrix(0.5, 0.0, 0.0)  # sensor frame, along the corridor
+    in_view = lambda p: p[np.abs(p[:, 0]) < 8]  # noqa: E731  (each scan sees 16 m of the corridor)
+    scans = [in_view(walls()), in_view(G.transform_points(G.inverse(step), walls()))]
+    base_poses = [np.eye(4), mount @ step @ G.inverse(mount)]
+    frames = [Frame(stamp=float(k), points=scans[k], index=k, base_T_sensor=mount,
+                    odom=base_poses[k] if with_wheels else None) for k in range(2)]
+    fe = FrontEnd(SlamConfig(), _Scripted([b @ mount for b in base_poses]))  # type: ignore[arg-type]
+    edges = [fe.process(f)[1] for f in frames]
+    cov = edges[1].covariance
+    axis = mount[:2, 0]  # the corridor (sensor x) in the base frame
+    normal = np.array([-axis[1], axis[0]])
+    along, across = float(axis @ cov[:2, :2] @ axis), float(normal @ cov[:2, :2] @ normal)
+    assert across < 0.02**2
+    if with_wheels:
+        assert along < 0.05**2 and len(fe.wheel_edges) == 1
+    else:
+        assert along == pytest.approx(1.0 / 3.0, rel=0.2)

@@ -47,6 +47,9 @@ class OdometryStageConfig(_Model):
     edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
     edge_sigma_from_residuals: bool = Field(True, description="scale the edge covariance by max(1, σ̂²/σ²), σ̂ the scan's own residual σ (the a-posteriori variance factor: a long-range sparse laser fits at several times the σ of a short-range one)")
     edge_gate_m: float = Field(0.3, gt=0)
+    edge_ambiguity_window_m: float | None = Field(1.0, gt=0, description="2D, a step no wheel odometry measured: its edge covariance also covers the poses within ± this (m, x and y) whose keyframe-to-keyframe correlative score reaches edge_ambiguity_ratio of the best (a scan that slides along a corridor, or a second match), as their second moment about the odometry's pose; None = the registration covariance alone")
+    edge_ambiguity_ratio: float = Field(0.95, gt=0, le=1, description="... the fraction of the best score that counts as as good (the ratio test of place recognition; 0.8, 0.9 and 0.95 compared in docs/LOOP_CLOSURE.md)")
+    edge_ambiguity_cell_m: float = Field(0.05, gt=0, description="... the likelihood-field cell (and σ) of that surface")
     # Noise floor added to the odometry covariance per keyframe edge: σ² = a + b·distance (translation)
     # and c + d·|angle| (rotation). Registration covariances treat the map as exact and are
     # optimistic; the floor keeps loop closures able to correct accumulated drift.

@@ -9,6 +9,10 @@ scan fits worse than σ (config ``odometry.edge_sigma_from_residuals``), plus a 
 with the motion (config ``odometry.floor_*``) because that covariance treats the previous scan as
 exact. When the edge cannot be evaluated (too few overlapping points) the per-scan covariances
 compounded along the way (:func:`registration.geometry.compound_covariance`) are used instead.
+A step no wheel odometry measured also carries how far it may have slid: the second moment of the
+poses that score as well on the keyframe-to-keyframe correlative surface (config
+``odometry.edge_ambiguity_*``; Olson 2009; docs/LOOP_CLOSURE.md, "How far a step without wheels may
+have slid").
 
 Wheel odometry, when the log has it, gives a second edge per keyframe interval, its noise model
 calibrated online against the registration (:mod:`slam.noise_scale`).
@@ -22,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from registration import correlative
 from registration import geometry as G
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError
@@ -95,6 +100,7 @@ class FrontEnd:
         self.wheel_edges_dropped = 0
         self.wheel_calibration: NoiseScaleCalibration | None = None  # created with the first wheel edge
         self._lumpy_since_kf = False  # the odometry took its constant-velocity start since the last keyframe
+        self._field: tuple[int, correlative.LikelihoodPyramid] | None = None  # (keyframe id, its likelihood field)
 
     def latest_wheel_edge(self, kf: Keyframe) -> WheelEdge | None:
         """The wheel-odometry edge ending at keyframe *kf*, if the log has wheel odometry."""
@@ -141,6 +147,25 @@ class FrontEnd:
         if c.edge_sigma_from_residuals:
             factor = max(1.0, res.residual / max(res.n_residuals - res.dof, 1) / c.edge_sigma_m**2)
         return EdgeCovariance(prior * factor, prior)
+
+    def _ambiguity(self, prev: Keyframe, kf: Keyframe, rel_base: Array) -> Array:
+        """Second moment (base frame) of the relative poses that score as well as the odometry's on the
+        correlative surface of *kf*'s scan against *prev*'s (:func:`registration.correlative.ambiguity`):
+        zero for a sharp match, the slide for a scan matched along a corridor. 2D only."""
+        c = self.config.odometry
+        if c.edge_ambiguity_window_m is None or self._dof != 3 or len(prev.points) < 10 or len(kf.points) < 10:
+            return np.zeros((self._dof, self._dof))
+        rel_sensor = G.inverse(prev.base_T_sensor) @ rel_base @ kf.base_T_sensor
+        A = G.adjoint(kf.base_T_sensor, planar=True)
+        if self._field is None or self._field[0] != prev.id:
+            self._field = (prev.id, correlative.LikelihoodPyramid(prev.points[:, :2], c.edge_ambiguity_cell_m,
+                                                                  c.edge_ambiguity_cell_m, levels=0))
+        try:
+            slide = correlative.ambiguity(kf.points[:, :2], self._field[1], rel_sensor, c.edge_ambiguity_window_m,
+                                          c.edge_ambiguity_ratio)
+        except DegenerateInputError:
+            return np.zeros((3, 3))
+        return A @ slide @ A.T
 
     def _wheel_covariance(self, rel: Array) -> Array:
         c = self.config.odometry
@@ -233,6 +258,11 @@ class FrontEnd:
                     wheel = self._wheel_edge(prev, kf, edge, covs.prior + floor)
                     if wheel is not None:
                         self.wheel_edges.append(wheel)
+                else:
+                    # No wheel odometry measured this step: the registration alone must say how far it
+                    # may have slid (a corridor, a second match), which its Fisher information does not.
+                    # (Where the wheels measured it, ICP started from them and their edge bounds the slide.)
+                    edge.covariance = edge.covariance + self._ambiguity(prev, kf, rel)
             if self._keep:
                 self.keyframes.append(kf)
             self._last = kf
