@@ -9,7 +9,7 @@ scan fits worse than σ (config ``odometry.edge_sigma_from_residuals``), plus a 
 with the motion (config ``odometry.floor_*``) because that covariance treats the previous scan as
 exact. When the edge cannot be evaluated (too few overlapping points) the per-scan covariances
 compounded along the way (:func:`registration.geometry.compound_covariance`) are used instead.
-A step no wheel odometry measured also carries how far it may have slid: the second moment of the
+A step no wheel edge backs also carries how far it may have slid: the second moment of the
 poses that score as well on the keyframe-to-keyframe correlative surface (config
 ``odometry.edge_ambiguity_*``; Olson 2009; docs/LOOP_CLOSURE.md, "How far a step without wheels may
 have slid").
@@ -254,14 +254,14 @@ class FrontEnd:
                 floor = self._floor(rel)
                 wheels = c.wheel_edges and prev.frame.odom is not None and frame.odom is not None
                 edge = OdometryEdge(prev.id, kf.id, rel, covs.posterior + floor, wheels)
-                if wheels:
-                    wheel = self._wheel_edge(prev, kf, edge, covs.prior + floor)
-                    if wheel is not None:
-                        self.wheel_edges.append(wheel)
+                wheel = self._wheel_edge(prev, kf, edge, covs.prior + floor) if wheels else None
+                if wheel is not None:
+                    self.wheel_edges.append(wheel)
                 else:
-                    # No wheel odometry measured this step: the registration alone must say how far it
-                    # may have slid (a corridor, a second match), which its Fisher information does not.
-                    # (Where the wheels measured it, ICP started from them and their edge bounds the slide.)
+                    # No wheel edge backs this step (no wheel odometry, or lumpy wheels the gate left out):
+                    # the registration alone must say how far it may have slid (a corridor, a second
+                    # match), which its Fisher information does not. Where a wheel edge stays, it bounds
+                    # the slide in the graph.
                     edge.covariance = edge.covariance + self._ambiguity(prev, kf, rel)
             if self._keep:
                 self.keyframes.append(kf)
