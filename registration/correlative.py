@@ -135,18 +135,27 @@ def search_grid(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, wi
                 window_rad: float) -> SearchGrid:
     """The candidates :func:`match` searches: headings ±*window_rad* around the planar 4×4 *guess* at the
     angular step of Hess et al. 2016 (Eq. 7), offsets ±*window_m* at the pyramid's resolution."""
-    pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
-    if len(pts) < 3:
-        raise DegenerateInputError("correlative matching needs at least 3 scan points")
-    x0, y0, th0 = G.matrix_to_xytheta(np.asarray(guess))
+    pts, (x0, y0, th0), step = _scan_at(scan_points, pyramid, guess, "correlative matching")
     res = pyramid.resolution
-    step = angular_step(pts, res)
     k = int(np.ceil(window_rad / step))
     thetas = th0 + step * np.arange(-k, k + 1)
+    return SearchGrid(float(x0), float(y0), thetas, k, _cells(pts, pyramid, x0, y0, thetas), int(np.ceil(window_m / res)))
+
+
+def _scan_at(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array, what: str) -> tuple[Array, Array, float]:
+    """The scan's points ``(N, 2)``, the planar 4×4 *pose* as (x, y, θ) and the angular step of the
+    pyramid's cells for this scan; DegenerateInputError (*what* needs …) under 3 points."""
+    pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
+    if len(pts) < 3:
+        raise DegenerateInputError(f"{what} needs at least 3 scan points")
+    return pts, G.matrix_to_xytheta(np.asarray(pose)), angular_step(pts, pyramid.resolution)
+
+
+def _cells(pts: Array, pyramid: LikelihoodPyramid, x0: float, y0: float, thetas: Array) -> NDArray[np.int32]:
+    """Cells ``(R, N, 2)`` of the scan points *pts* ``(N, 2)`` turned by each of the R *thetas* and moved to (x0, y0)."""
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     rotated = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
-    cells = pyramid.cells(rotated).astype(np.int32)  # (R, N, 2); int32 halves the gathers' index traffic
-    return SearchGrid(float(x0), float(y0), thetas, k, cells, int(np.ceil(window_m / res)))
+    return pyramid.cells(rotated).astype(np.int32)  # int32 halves the gathers' index traffic
 
 
 def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
@@ -230,16 +239,10 @@ def ambiguity(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array, windo
     matched a metre along it still claims centimetres. The level set of the correlative score surface
     (Olson, "Real-time correlative scan matching", ICRA 2009, §IV: the covariance of the match from the
     cost surface) shows the slide; its second moment about *pose* covers a second peak as well."""
-    pts = np.asarray(scan_points, dtype=np.float64)[:, :2]
-    if len(pts) < 3:
-        raise DegenerateInputError("the score surface needs at least 3 scan points")
-    x0, y0, th0 = G.matrix_to_xytheta(np.asarray(pose))
+    pts, (x0, y0, th0), step = _scan_at(scan_points, pyramid, pose, "the score surface")
     res = pyramid.resolution
-    step = angular_step(pts, res)
     thetas = th0 + step * np.arange(-headings, headings + 1)
-    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
-    rotated = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
-    cells = pyramid.cells(rotated).astype(np.int32)
+    cells = _cells(pts, pyramid, x0, y0, thetas)
     w = int(np.ceil(window_m / res))
     o = np.arange(-w, w + 1)
     ox, oy = np.meshgrid(o, o, indexing="ij")
