@@ -18,8 +18,9 @@ the per-dataset detail. Everything is measured in this one run:
 3. NEES Monte Carlo (200 trials each): 2D line model (scan-like points on walls, σ = 1 cm, dense
    noise-free target every 2 mm), 3D plane model (box room, σ = 3 cm, target every 1 cm), and the
    point model with known correspondences (σ = 1 cm), 2D/3D.
-4. The compiled 2D point-to-line ICP against the same iterations in numpy (Intel scan onto the
-   previous four scans, loop-closure settings): median speed-up and largest pose difference.
+4. The compiled 2D point-to-line and point-to-point ICPs against the same iterations in numpy (Intel
+   scan onto the previous four scans, loop-closure settings): median speed-up and largest pose
+   difference. (Section 1's 2D pairs run the compiled point-to-point loop.)
    The correlative branch and bound against an exhaustive search of the same window (same scans,
    guess pushed 0.8 m / 4° off): median speed-up and whether both reach the same maximum.
 5. KISS-ICP odometry: end-point drift on the 10 KITTI frames; throughput and Kümmerle relation
@@ -204,14 +205,18 @@ def bench_intel(n_pairs: int, reps: int) -> tuple[dict, list]:
     return {"pairs": pairs}, frames
 
 
-def bench_compiled_point_to_line(frames, n_pairs: int, reps: int) -> dict:
+def bench_compiled_point_to_line(frames, n_pairs: int, reps: int, point_to_point: bool = False) -> dict:
     """The compiled 2D point-to-line ICP (registration.kernels) against the same iterations in numpy:
     scan k+1 onto the local map of scans k−3 … k (wheel-odometry placement), from the wheel guess,
     with the loop-closure settings (gates 1.0 / 0.4 / 0.15 m, Cauchy, 8-neighbour normals). Times
-    are the best of *reps* calls, each including the target's construction (k-d tree or grid, normals)."""
+    are the best of *reps* calls, each including the target's construction (k-d tree or grid, normals).
+    *point_to_point*: the same for the SVD point-to-point ICP (kernels.point_icp_2d against icp()'s numpy
+    iterations on the k-d tree)."""
     from registration import point_to_plane as p2l
     from registration.config import IcpConfig
-    from registration.icp import IcpTarget
+    from registration.icp import IcpTarget, icp
+
+    align = icp if point_to_point else p2l.icp_point_to_plane
 
     cfg = IcpConfig(gates=(1.0, 0.4, 0.15), robust="cauchy", robust_scale=0.06, sigma=0.03, max_iterations=40,
                     tol_translation=1e-4, tol_rotation=1e-4, normal_neighbors=8, workers=1)
@@ -230,8 +235,7 @@ def bench_compiled_point_to_line(frames, n_pairs: int, reps: int) -> dict:
             for _ in range(reps):
                 t0 = time.perf_counter()
                 try:
-                    poses[compiled] = p2l.icp_point_to_plane(src, IcpTarget(tgt_pts, normal_neighbors=8, workers=1),
-                                                             guess, cfg).transform
+                    poses[compiled] = align(src, IcpTarget(tgt_pts, normal_neighbors=8, workers=1), guess, cfg).transform
                 except Exception:  # noqa: BLE001 - a degenerate pair fails in both; timed all the same
                     poses[compiled] = None
                 best = min(best, time.perf_counter() - t0)
@@ -517,6 +521,7 @@ def main(argv: list[str] | None = None) -> dict:
     intel, intel_frames = bench_intel(args.intel_pairs, args.reps)
     simr = bench_sim(args.sim_pairs, args.reps)
     compiled = bench_compiled_point_to_line(intel_frames, args.intel_pairs, args.reps)
+    compiled_p2p = bench_compiled_point_to_line(intel_frames, args.intel_pairs, args.reps, point_to_point=True)
     corr = bench_correlative(intel_frames, args.intel_pairs, args.reps)
     pp = _summarise_pairs({"kitti": kitti["point_to_point_vs_open3d"], "intel": intel["pairs"], "sim": simr["pairs"]})
     nees = bench_nees(args.nees_trials)
@@ -535,6 +540,8 @@ def main(argv: list[str] | None = None) -> dict:
         "kiss_intel_scans_per_s": io["kiss_odometry_with_covariance"]["scans_per_s_cpu"],
         "compiled_point_to_line_speedup_vs_numpy": compiled["speedup_vs_numpy"],
         "compiled_point_to_line_max_pose_difference": compiled["max_pose_difference"],
+        "compiled_point_to_point_speedup_vs_numpy": compiled_p2p["speedup_vs_numpy"],
+        "compiled_point_to_point_max_pose_difference": compiled_p2p["max_pose_difference"],
         "correlative_branch_and_bound_speedup_vs_exhaustive": corr["speedup_vs_exhaustive"],
         "correlative_branch_and_bound_same_maximum": f"{corr['same_maximum']} of {corr['pairs']}",
     }
@@ -552,6 +559,7 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "fixed_point_and_time": pp["per_dataset"],
         "compiled_point_to_line_intel": compiled,
+        "compiled_point_to_point_intel": compiled_p2p,
         "correlative_intel": corr,
         "nees": nees,
         "kiss_kitti": kk,

@@ -316,6 +316,10 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     tgt = _as_target(target, config)
     S, T = _prepare(source, tgt, init, config)
     d, n = tgt.dim, len(S)
+    from . import point_to_plane as p2l  # the switch of both compiled 2D loops
+
+    if d == 2 and p2l.COMPILED_2D and config.robust in p2l._ROBUST_CODES:
+        return _icp_2d_compiled(S, tgt, T, config)
     tpts = tgt.points
     n_tgt = len(tpts)
     # The matches are searched again only where the motion since the last search could change them.
@@ -373,3 +377,27 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
         moved = S @ R.T + t
     gate = config.gates[-1]
     return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
+
+
+def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
+    """The 2D iterations of :func:`icp`, compiled (:func:`registration.kernels.point_icp_2d`) on the target's
+    grid index, then the same evaluation."""
+    from . import kernels
+    from .point_to_plane import _ROBUST_CODES
+
+    g = tgt.grid
+    repeat_is_fixed_point = config.robust == "none" and config.tol_translation > 0 and config.tol_rotation > 0
+    R, t, it, converged, status, where, pairs = kernels.point_icp_2d(
+        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
+        config.max_iterations, config.tol_translation, config.tol_rotation, _ROBUST_CODES[config.robust],
+        config.robust_scale, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
+    if status == 1:
+        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates[where[0]]} m "
+                                   f"(need {config.min_inliers})")
+    if status == 3:
+        raise DegenerateInputError("all correspondence weights are zero")
+    T = np.eye(4)
+    T[:2, :2], T[:2, 3] = R, t
+    where[where < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
+    gate = config.gates[-1]
+    return _evaluate(S, tgt, T, S @ R.T + t, where, gate, config, it, converged)
