@@ -228,6 +228,7 @@ def test_an_edge_in_a_corridor_without_a_wheel_edge_is_uncertain_along_it(mount_
     assert across < 0.02**2
     assert len(fe.wheel_edges) == (wheels == "smooth")
     if wheels == "smooth":
-        assert along < 0.05**2
+        assert along < 0.05**2 and fe.slid_edges == 0
     else:
         assert along == pytest.approx(1.0 / 3.0, rel=0.2)
+        assert fe.slid_edges == 1 and fe.max_slide_m == pytest.approx(np.sqrt(1.0 / 3.0), rel=0.1)

@@ -32,14 +32,15 @@ class FrontEndSummary:
 
     track: ScanTrack
     odometry_s: float  # seconds spent in the front end (in its own process, overlapping the rest)
-    stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges kept and left out
+    stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges kept and left out, slid edges
     peak_memory_mb: float = 0.0  # of the front-end process, when it is one (0 inline: it is the caller's)
 
 
 def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
     stats = {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
              "unguided_escalations": getattr(front.odometry, "unguided_escalations", 0),
-             "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped}
+             "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped,
+             "slid_edges": front.slid_edges, "max_slide_m": round(front.max_slide_m, 4)}
     cal = front.wheel_calibration
     if cal is not None:
         stats |= {"wheel_noise_scale_translation": round(cal.scale_translation, 4),

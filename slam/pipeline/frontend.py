@@ -98,6 +98,8 @@ class FrontEnd:
         self._dof: int | None = None
         self.wheel_edges: list[WheelEdge] = []
         self.wheel_edges_dropped = 0
+        self.slid_edges = 0  # odometry edges that carry a slide (registration alone, a second pose as good)
+        self.max_slide_m = 0.0  # the largest σ along a slide among them
         self.wheel_calibration: NoiseScaleCalibration | None = None  # created with the first wheel edge
         self._lumpy_since_kf = False  # the odometry took its constant-velocity start since the last keyframe
         self._field: tuple[int, correlative.LikelihoodPyramid] | None = None  # (keyframe id, its likelihood field)
@@ -262,7 +264,12 @@ class FrontEnd:
                     # the registration alone must say how far it may have slid (a corridor, a second
                     # match), which its Fisher information does not. Where a wheel edge stays, it bounds
                     # the slide in the graph.
-                    edge.covariance = edge.covariance + self._ambiguity(prev, kf, rel)
+                    slide = self._ambiguity(prev, kf, rel)
+                    if np.any(slide):
+                        self.slid_edges += 1
+                        n_t = 2 if self._dof == 3 else 3
+                        self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:n_t, :n_t])[-1])))
+                        edge.covariance = edge.covariance + slide
             if self._keep:
                 self.keyframes.append(kf)
             self._last = kf
