@@ -251,7 +251,7 @@ def ambiguity(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array, windo
     offsets = np.tile(np.stack([ox.ravel(), oy.ravel()], axis=1), (len(thetas), 1)).astype(np.int64)
     scores = pyramid.score_candidates(0, cells, rot, offsets)
     near = scores >= ratio * scores.max()
-    if not np.any(near) or np.abs(offsets[near]).max() <= radius_cells:
+    if np.abs(offsets[near]).max() <= radius_cells:  # near holds the best pose at least
         return np.zeros((3, 3))
     d = offsets[near] * res
     R0 = G.xytheta_to_matrix(0.0, 0.0, th0)[:2, :2]

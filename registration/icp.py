@@ -387,17 +387,17 @@ def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
 
     g = tgt.grid
     repeat_is_fixed_point = config.robust == "none" and config.tol_translation > 0 and config.tol_rotation > 0
-    R, t, it, converged, status, where, pairs = kernels.point_icp_2d(
+    R, t, it, converged, status, stage, matches, pairs = kernels.point_icp_2d(
         np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
         config.max_iterations, config.tol_translation, config.tol_rotation, _ROBUST_CODES[config.robust],
         config.robust_scale, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
     if status == 1:
-        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates[where[0]]} m "
+        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates[stage]} m "
                                    f"(need {config.min_inliers})")
     if status == 3:
         raise DegenerateInputError("all correspondence weights are zero")
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, t
-    where[where < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
+    matches[matches < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
     gate = config.gates[-1]
-    return _evaluate(S, tgt, T, S @ R.T + t, where, gate, config, it, converged)
+    return _evaluate(S, tgt, T, S @ R.T + t, matches, gate, config, it, converged)

@@ -277,9 +277,9 @@ def point_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     closed-form step of Arun et al. 1987, in 2D θ = atan2(H01 − H10, H00 + H11)), source ``S (N, 2)``
     from ``(R, t)``; *robust* 0 = none, 1 = Huber, 2 = Cauchy on the pair distance with *scale*. With
     *repeat_is_fixed_point* an iteration whose matches repeat those the pose was solved from ends the
-    stage (the step would be exactly 0). Returns (R, t, iterations, converged, status, where, pairs):
-    status 0 = done, *where* the nearest target point within the last gate of each source point at the
-    final pose (−1: none); 1 = fewer than *min_inliers* pairs (*pairs*) within ``gates[where[0]]`` at
+    stage (the step would be exactly 0). Returns (R, t, iterations, converged, status, stage, matches,
+    pairs): status 0 = done, *matches* the nearest target point within the last gate of each source point
+    at the final pose (−1: none); 1 = fewer than *min_inliers* pairs (*pairs*) within ``gates[stage]`` at
     iteration *iterations*; 3 = every correspondence weight zero."""
     n = S.shape[0]
     idx, solved = np.empty(n, np.int64), np.empty(n, np.int64)  # matches now, and those the pose was solved from
@@ -301,8 +301,7 @@ def point_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                     converged = True
                     break
             if n_ok < min_inliers:
-                idx[0] = stage
-                return R, t, it, False, 1, idx, n_ok
+                return R, t, it, False, 1, stage, idx, n_ok
             sw = px = py = qx = qy = 0.0  # weighted centroids of the matched source and target points
             for p in range(n):
                 q = idx[p]
@@ -315,8 +314,7 @@ def point_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                     qx += w * pts[q, 0]
                     qy += w * pts[q, 1]
             if sw <= 0.0:
-                idx[0] = stage
-                return R, t, it, False, 3, idx, n_ok
+                return R, t, it, False, 3, stage, idx, n_ok
             px, py, qx, qy = px / sw, py / sw, qx / sw, qy / sw
             h00 = h01 = h10 = h11 = 0.0
             for p in range(n):
@@ -345,7 +343,7 @@ def point_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 break
     # The matches at the final pose and the last gate (the evaluation's), −1 where none.
     _match_all(S, R, t, idx, pts, ox, oy, cell, nx, ny, order, starts, gates[gates.shape[0] - 1])
-    return R, t, it, converged, 0, idx, n
+    return R, t, it, converged, 0, gates.shape[0] - 1, idx, n
 
 
 @njit(cache=True)

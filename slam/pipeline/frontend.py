@@ -267,8 +267,7 @@ class FrontEnd:
                     slide = self._ambiguity(prev, kf, rel)
                     if np.any(slide):
                         self.slid_edges += 1
-                        n_t = 2 if self._dof == 3 else 3
-                        self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:n_t, :n_t])[-1])))
+                        self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:2, :2])[-1])))
                         edge.covariance = edge.covariance + slide
             if self._keep:
                 self.keyframes.append(kf)
