@@ -265,6 +265,22 @@ def test_agreeing_pending_closures_are_accepted_as_a_group_once_their_window_has
     assert acc.relocalises(group, est)  # 2 m off: beyond what a kernel lets a closure pull
 
 
+def test_a_window_still_open_when_the_log_ends_is_decided_on_the_evidence_it_has():
+    """A return to the start at the very end of a log: its closures arrive in the last keyframes, and the
+    group window after them never passes. At the end the open window is decided as it stands (the same
+    group a completed window would accept), and then nothing is pending."""
+    rng = np.random.default_rng(7)
+    truth = _corridor_truth(35)
+    est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), rng)
+    acc = _acceptance(step_cov=1e-5, K=35)
+    for v in verified:
+        acc.consider(v, _keyframes(35), lambda v: True)
+    assert acc.decide(34, est) == []  # the last keyframe: the window after keyframe 30 is not complete
+    group = acc.decide_open_window(est)
+    assert sorted(lc.j for lc in group) == [30, 31, 32, 33, 34] and all(lc.group for lc in group)
+    assert acc.pending == [] and acc.decide_open_window(est) is None
+
+
 def test_closures_that_disagree_form_no_group_and_expire():
     """Five closures, each slid along the corridor by its own 0.5 m: no three agree."""
     rng = np.random.default_rng(5)

@@ -135,6 +135,15 @@ class Acceptance:
         self.stats.accepted_as_group += len(accepted)
         return accepted
 
+    def decide_open_window(self, poses: Array) -> list[LoopClosure] | None:
+        """At the end of the log: decide the oldest window still open on the evidence that arrived before the
+        log ended (a return to the start at the end of a log is the commonest loop of all); None when no
+        closure is pending."""
+        if not self.pending:
+            return None
+        first = min(p.closure.j for p in self.pending)
+        return self.decide(first + self.config.group_window_keyframes - 1, poses)
+
     # ------------------------------------------------------------------ pairwise consistency
     def consistent(self, a: LoopClosure, b: LoopClosure, poses: Array) -> bool:
         """PCM's pairwise test: the cycle Z_a⁻¹ (X_ia⁻¹ X_ib) Z_b (X_jb⁻¹ X_ja) is within the χ² gate of the

@@ -9,7 +9,8 @@
    odometry since (so a revisit gathers its group);
 3. when nothing was accepted, descriptor candidates (2D); and a global search of one place within
    reach that no spatial window could cover (2D, every ``global_every_keyframes``);
-4. the group decision over the pending closures whose window has passed.
+4. the group decision over the pending closures whose window has passed (at the end of the log, over
+   the windows still open: :meth:`LoopCloser.close_open_window`).
 
 The result is the accepted closures and whether the graph must be relocalised (a group says the
 estimate is off by more than a robust kernel lets a closure pull).
@@ -112,6 +113,15 @@ class LoopCloser:
             self.index.add(j, kj.points)
         group = self.acceptance.decide(j, poses)
         return out + group, bool(group) and self.acceptance.relocalises(group, poses)
+
+    def close_open_window(self, poses: Array) -> tuple[list[LoopClosure], bool] | None:
+        """After the last keyframe: the group of the oldest window still open (decided on the evidence the log
+        gave) and whether it relocalises the graph, like :meth:`detect`'s; None when nothing is pending.
+        Call until None, updating *poses* in between."""
+        group = self.acceptance.decide_open_window(poses)
+        if group is None:
+            return None
+        return group, bool(group) and self.acceptance.relocalises(group, poses)
 
     def _run(self, cand: Candidate, keyframes: list[Keyframe], poses: Array, ref: Reference | None,
              out: list[LoopClosure]) -> None:

@@ -70,8 +70,22 @@ class OnlineGraph:
         return new
 
     def finish(self) -> Array:
-        """Final batch solve (with pruning of violated closures); ``(K, 4, 4)`` keyframe poses."""
-        return self.backend.finish()
+        """The groups of the closures still pending when the log ended, then the final batch solve (with
+        pruning of violated closures); ``(K, 4, 4)`` keyframe poses."""
+        be = self.backend
+        t0 = time.perf_counter()
+        while (decided := self.closer.close_open_window(be.poses)) is not None:
+            group, relocalise = decided
+            for lc in group:
+                be.add_loop(lc)
+                self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
+            self.loops.extend(group)
+            if relocalise:
+                be.relocalise()
+            elif group:
+                be.update(loop_added=True)
+        self.times["loop_closure_s"] += time.perf_counter() - t0
+        return be.finish()
 
     @property
     def stats(self) -> dict:
