@@ -11,7 +11,7 @@ Sources (Olson 2009 §2 for spatial gating, Hess et al. 2016 §V for the global 
 
 * spatial: the ``near_candidates`` nearest places within reach, plus the ``uncertain_candidates``
   most uncertain ones (an old pass is not crowded out by the recent pass beside it);
-* descriptor (2D): places whose Scan Context descriptor (Kim & Kim 2018) matches, when the spatial
+* descriptor: places whose Scan Context descriptor (Kim & Kim 2018) matches, when the spatial
   ones closed nothing: revisits the estimate has lost;
 * global (2D): places whose window would exceed ``max_window_m`` yet lie within reach: one at a time,
   searched over their whole local map;
@@ -153,19 +153,21 @@ def global_candidate(keyframes: list[Keyframe], poses: Array, i: int, j: int, un
 
 
 def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: Array, j: int,
-               uncertainty: NodeUncertainty, config: LoopConfig, radius_m: float, sector_rad: float) -> list[Candidate]:
+               uncertainty: NodeUncertainty, config: LoopConfig, planar: bool, radius_m: float,
+               sector_rad: float) -> list[Candidate]:
     """Candidates from descriptor *hits* ``(place, yaw)``: the same position, the descriptor's relative
-    heading, searched over ± half the overlap radius and ± two sectors; vouched like a spatial candidate
-    when the estimate is sure of the pair; plausible only within three of the estimate's own search
-    windows when the place is within spatial reach (a symmetric corridor looks the same turned round)."""
-    win_xy, win_th, _ = windows(uncertainty, config, True)
+    heading (about the sensor's z axis, also in 3D), searched over ± half the overlap radius and ± two
+    sectors; vouched like a spatial candidate when the estimate is sure of the pair; plausible only within
+    three of the estimate's own search windows when the place is within spatial reach (a symmetric
+    corridor looks the same turned round)."""
+    win_xy, win_th, _ = windows(uncertainty, config, planar)
     out = []
     for i, yaw in hits:
         est = sensor_relative(keyframes, poses, i, j)
         w = Window(max(config.window_floor_m, 0.5 * radius_m), 2.0 * sector_rad)
         within = win_xy[i] <= config.max_window_m
         out.append(Candidate(i, j, Source.DESCRIPTOR, G.xytheta_to_matrix(0.0, 0.0, yaw), w,
-                             (est, uncertainty.covariance(i, True)), _vouched(win_xy[i], win_th[i], config),
+                             (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config),
                              plausible=_plausible(win_xy[i], win_th[i]) if within else None))
     return out
 

@@ -7,8 +7,9 @@
    estimate vouches for it and agrees (else pending);
 2. the places of recent pending closures the estimate could not vouch for, followed into with the
    odometry since (so a revisit gathers its group);
-3. when nothing was accepted, descriptor candidates (2D); and a global search of one place within
-   reach that no spatial window could cover (2D, every ``global_every_keyframes``);
+3. when nothing was accepted, descriptor candidates (Scan Context: occupancy bins for a 2D laser,
+   heights for a 3D LiDAR); and a global search of one place within reach that no spatial window could
+   cover (2D, every ``global_every_keyframes``);
 4. the group decision over the pending closures whose window has passed (at the end of the log, over
    the windows still open: :meth:`LoopCloser.close_open_window`).
 
@@ -27,7 +28,7 @@ from slam.keyframes import Keyframe
 from . import candidates as C
 from .accept import Acceptance
 from .config import LoopConfig
-from .descriptor import DescriptorIndex, PolarDescriptorConfig, polar_descriptor
+from .descriptor import SCAN_CONTEXT_3D, DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 from .local_map import LocalMaps
 from .types import Candidate, LoopClosure, LoopStats, Rejection, Source
 from .uncertainty import NodeUncertainty, RelativeUncertainty
@@ -46,7 +47,8 @@ class LoopCloser:
         self.maps = LocalMaps()
         self.verifier = Verifier(config, planar, self.maps)
         self.acceptance = Acceptance(config, planar, uncertainty, self.stats)
-        self.index = DescriptorIndex(PolarDescriptorConfig()) if planar and config.descriptor else None
+        self.index = (DescriptorIndex(PolarDescriptorConfig() if planar else SCAN_CONTEXT_3D)
+                      if config.descriptor else None)
         self._path_m: list[float] = []  # cumulative odometry path length at each keyframe
         self._global_turn = 0
         self._radius = 0.0  # the overlap radius of the keyframe being closed
@@ -105,7 +107,7 @@ class LoopCloser:
             i_T_h = G.inverse(keyframes[h.i].base_T_sensor) @ h.measurement @ keyframes[h.j].base_T_sensor
             self._run(C.hypothesis(h.i, h.j, i_T_h, keyframes, poses, j, c, p.map_half), keyframes, poses, ref, out)
             tried.add(h.i)
-        if not out and self.planar:
+        if not out:
             self._descriptor(keyframes, poses, j, uncertainty, radius, ref, out, tried)
         if self.planar and c.global_search:  # closures with recent passes say nothing of the old places out of reach
             self._global(keyframes, poses, j, uncertainty, radius, ref, out)
@@ -155,7 +157,7 @@ class LoopCloser:
         hits = [(i, yaw) for i, dist, yaw in hits if dist <= c.descriptor_max_distance
                 and all(abs(i - t) > c.local_map_keyframes for t in tried)]
         sector = 2.0 * np.pi / self.index.cfg.n_sectors
-        for cand in C.descriptor(hits, keyframes, poses, j, uncertainty, c, radius, sector):
+        for cand in C.descriptor(hits, keyframes, poses, j, uncertainty, c, self.planar, radius, sector):
             self._run(cand, keyframes, poses, ref, out)
             if out:
                 return

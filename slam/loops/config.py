@@ -32,7 +32,7 @@ class LoopConfig(BaseModel):
     local_map_keyframes: int = Field(3, ge=0, description="a candidate's local map: its scan and those of ±this many keyframes, in its frame")
     local_map_path_m: float | None = Field(0.5, ge=0, description="... widened to cover the search window: keyframes within window + this much path (m) of the candidate; None: the overlap radius")
     max_local_map_keyframes: int = Field(40, ge=1, description="... up to ±this many keyframes (memory and build time)")
-    descriptor: bool = Field(True, description="2D: Scan Context place recognition (Kim & Kim 2018) when a keyframe closed nothing spatially")
+    descriptor: bool = Field(True, description="Scan Context place recognition (Kim & Kim 2018: bin heights of a 3D cloud, bin occupancy of a 2D scan) when a keyframe closed nothing spatially")
     descriptor_candidates: int = Field(2, ge=0)
     descriptor_max_distance: float = Field(0.35, gt=0, le=1, description="Scan Context distance (eq. 5, 0–1) below which a place is a candidate")
     global_search: bool = Field(True, description="2D: places within the new keyframe's uncertainty but beyond max_window_m are searched whole, one per global_every_keyframes (Hess et al. 2016 §V-C)")

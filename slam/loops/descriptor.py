@@ -1,11 +1,14 @@
-"""Polar scan descriptor for place recognition of 2D scans (Scan Context, Kim & Kim, IROS 2018, §III).
+"""Polar scan descriptor for place recognition (Scan Context, Kim & Kim, IROS 2018, §III).
 
 A scan's hit points (sensor frame) are binned into ``n_rings`` range rings × ``n_sectors`` angular
-sectors; each bin holds the fraction of the scan's points falling in it (a 2D laser has no height,
-so the occupancy replaces Scan Context's maximum height). Two descriptors are compared over all
-cyclic column shifts (eq. 6): the best shift estimates the relative heading, which seeds ICP.
-The *ring key* (eq. 7: the per-ring sum, invariant to rotation) is the vector indexed in a k-d tree
-for fast retrieval, so revisits are found even when the odometry estimate is far off.
+sectors. For a 3D cloud (``height=True``) each bin holds the maximum height of its points, as in the
+paper (eq. 1), measured above the scan's own ground level (a low percentile of its heights, so that
+no sensor height is configured); a 2D laser has no height, and its bins hold the fraction of the
+scan's points falling in them instead. Two descriptors are compared over all cyclic column shifts
+(eq. 6): the best shift estimates the relative heading, which seeds ICP. The *ring key* (eq. 7),
+invariant to rotation, is the vector searched first, so revisits are found even when the odometry
+estimate is far off: for heights the fraction of a ring's sectors that are occupied (the paper's
+ψ = ‖r‖₀ / N_s), for the 2D occupancy the ring's share of the points.
 """
 
 from __future__ import annotations
@@ -20,20 +23,32 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class PolarDescriptorConfig:
-    """Bins of the polar histogram. ``max_range`` in metres; rings are evenly spaced in range."""
+    """Bins of the polar histogram. ``max_range`` in metres; rings are evenly spaced in range. ``height``:
+    bins hold the maximum height above the ground level (3D clouds) instead of the share of points."""
 
     n_rings: int = 20
     n_sectors: int = 60
     max_range: float = 15.0
+    height: bool = False
+
+
+# Scan Context's own bins for a 3D LiDAR (Kim & Kim 2018, §IV-A: N_s = 60, N_r = 20, L_max = 80 m).
+SCAN_CONTEXT_3D = PolarDescriptorConfig(n_rings=20, n_sectors=60, max_range=80.0, height=True)
+# The ground level of a 3D scan: this percentile of its points' heights (most returns of a vehicle's
+# LiDAR are the ground around it; a low percentile rather than the minimum ignores stray returns below it).
+_GROUND_PERCENTILE = 5.0
 
 
 def polar_descriptor(points: Array, cfg: PolarDescriptorConfig = PolarDescriptorConfig()) -> Array:
-    """``(n_rings, n_sectors)`` histogram of the fraction of hit points per (range, bearing) bin.
+    """``(n_rings, n_sectors)`` descriptor: per (range, bearing) bin the fraction of hit points, or with
+    ``cfg.height`` the maximum height (m) of the bin's points above the scan's ground level (0 for an
+    empty bin, and for a bin of ground only).
 
     Args:
-        points: ``(N, 2)`` or ``(N, 3)`` hit points in the sensor frame, metres.
+        points: ``(N, 2)`` or ``(N, 3)`` hit points in the sensor frame, metres (``(N, 3)`` for heights).
     """
-    p = np.asarray(points, dtype=float)[:, :2]
+    P = np.asarray(points, dtype=float)
+    p = P[:, :2]
     r = np.hypot(p[:, 0], p[:, 1])
     keep = (r < cfg.max_range) & (r > 0)
     r, p = r[keep], p[keep]
@@ -43,12 +58,20 @@ def polar_descriptor(points: Array, cfg: PolarDescriptorConfig = PolarDescriptor
     ring = np.minimum((r / cfg.max_range * cfg.n_rings).astype(int), cfg.n_rings - 1)
     bearing = np.arctan2(p[:, 1], p[:, 0]) % (2 * np.pi)
     sector = np.minimum((bearing / (2 * np.pi) * cfg.n_sectors).astype(int), cfg.n_sectors - 1)
+    if cfg.height:
+        z = P[keep, 2] if P.shape[1] > 2 else np.zeros(len(r))
+        h = np.maximum(z - np.percentile(z, _GROUND_PERCENTILE), 0.0)
+        np.maximum.at(desc, (ring, sector), h)
+        return desc
     np.add.at(desc, (ring, sector), 1.0)
     return desc / len(r)
 
 
-def ring_key(desc: Array) -> Array:
-    """Rotation-invariant summary (Scan Context eq. 7): the per-ring mass, shape ``(n_rings,)``."""
+def ring_key(desc: Array, cfg: PolarDescriptorConfig = PolarDescriptorConfig()) -> Array:
+    """Rotation-invariant summary (Scan Context eq. 7), shape ``(n_rings,)``: per ring the fraction of
+    occupied sectors for heights, the ring's share of the points for the 2D occupancy."""
+    if cfg.height:
+        return np.count_nonzero(desc > 0, axis=-1) / desc.shape[-1]
     return desc.sum(axis=-1)
 
 
@@ -113,7 +136,7 @@ class DescriptorIndex:
 
     def add(self, key_id: int, points: Array) -> Array:
         d = polar_descriptor(points, self.cfg)
-        key = ring_key(d)
+        key = ring_key(d, self.cfg)
         if self._n == len(self._keys):
             cap = max(64, 2 * self._n)
             keys, ids = np.empty((cap, len(key))), np.empty(cap, dtype=np.int64)
@@ -137,7 +160,7 @@ class DescriptorIndex:
         if n == 0:
             return []
         kk = min(total, max(k * 3, k))
-        diff = self._keys[:total] - ring_key(desc)
+        diff = self._keys[:total] - ring_key(desc, self.cfg)
         d2 = np.einsum("ij,ij->i", diff, diff)
         idx = np.argpartition(d2, kk - 1)[:kk] if kk < total else np.arange(total)
         idx = idx[np.lexsort((idx, d2[idx]))]  # nearest first, ties by insertion order (as a k-d tree's)
