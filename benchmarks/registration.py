@@ -12,8 +12,12 @@ the per-dataset detail. Everything is measured in this one run:
    iteration from its result. Times are the best of ``--reps`` calls; ours includes the covariance
    and χ² test, Open3D's only fitness/RMSE (the summary ratio); the detail also gives the ratio
    against Open3D plus its ``get_information_matrix_from_point_clouds`` (the same outputs as ours).
+   Beside Open3D, small_gicp (Koide 2024; the ``bench`` extra, optional: null keys without it) runs the
+   same pairs point-to-point, one thread, same start, gate and stopping rule, timed the same way
+   (``*_time_ratio_vs_small_gicp`` = ours / small_gicp; no target, it shows how far the limit is).
 2. Our point-to-plane ICP and Open3D's against kitti_mini's SemanticKITTI poses, every consecutive pair
-   (voxel 0.3 m, 20-neighbour normals): the largest step error; KISS-ICP odometry's largest step error
+   (voxel 0.3 m, 20-neighbour normals): the largest step error (and small_gicp's, with its time against
+   ours); KISS-ICP odometry's largest step error
    and end-point drift per sequence. The old ``kitti_odometry_00_sample``, whose official
    ``poses/00.txt`` is a constant-velocity placeholder over its frames, stays in the detail
    (``kitti_00_sample_placeholder_poses``) as the record of that finding.
@@ -106,16 +110,108 @@ def compare_open3d(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, gate: flo
     out = {"n_src": len(src), "n_tgt": len(tgt), "time_ours_s": min(t_u), "time_open3d_s": min(t_o),
            "time_ratio": min(t_u) / min(t_o), "time_ratio_vs_open3d_with_information": min(t_u) / min(t_oi),
            "open3d_converged": o3d_conv, "open3d_fitness": ro.fitness}
+    Ts = None
+    if _small_gicp() is not None:
+        sg, Ts = small_gicp_point_to_point(src, tgt, init, gate, reps)
+        out.update(sg, time_ratio_vs_small_gicp=min(t_u) / sg["small_gicp_time_s"])
     if isinstance(ru, Exception):
         out.update(ours_converged=False, error=str(ru))
         return out
     dt, dth = _err(To, ru.transform)
     out.update(ours_converged=ru.converged, ours_iterations=ru.iterations, ours_fitness=ru.fitness,
                fixed_point_dt_m=dt, fixed_point_dtheta_deg=dth, chi2_accepted=ru.accepted)
+    if Ts is not None:
+        out["small_gicp_fixed_point_dt_m"], out["small_gicp_fixed_point_dtheta_deg"] = _err(Ts, ru.transform)
     if truth is not None:
         out["ours_err_m"], out["ours_err_deg"] = _err(truth, ru.transform)
         out["open3d_err_m"], out["open3d_err_deg"] = _err(truth, To)
+        if Ts is not None:
+            out["small_gicp_err_m"], out["small_gicp_err_deg"] = _err(truth, Ts)
     return out
+
+
+# ----------------------------------------------------------------------------- small_gicp
+
+# Its stopping rule is ours: the pose increment below 1e-10 rad and 1e-10 m (FIXED), ≤ 300 iterations.
+# One thread: our ICP runs in this one Python thread (see notes.threads for its k-d tree queries).
+SMALL_GICP_THREADS = 1
+_SMALL_GICP_FIXED = dict(num_threads=SMALL_GICP_THREADS, rotation_epsilon=1e-10, translation_epsilon=1e-10)
+
+
+def _small_gicp():
+    """The ``small_gicp`` module, or None when it is not installed (the ``bench`` extra pins it; its keys
+    are then null). small_gicp: K. Koide, "small_gicp: Efficient and parallel algorithms for point cloud
+    registration", JOSS 9(100):6948, 2024 (MIT); ICP and point-to-plane ICP by Levenberg–Marquardt on SE(3)
+    over a nanoflann k-d tree."""
+    try:
+        import small_gicp
+    except ImportError:
+        return None
+    return small_gicp
+
+
+def _sg_cloud(P: np.ndarray):
+    """small_gicp's PointCloud of an N×2 or N×3 array (2D scans at z = 0, as :func:`_pcd` does)."""
+    P = P if P.shape[1] == 3 else np.column_stack([P, np.zeros(len(P))])
+    return _small_gicp().PointCloud(np.ascontiguousarray(P, dtype=np.float64))
+
+
+def small_gicp_point_to_point(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, gate: float,
+                              reps: int) -> tuple[dict, np.ndarray]:
+    """small_gicp's point-to-point ICP (``registration_type='ICP'``) on one pair, from *init* with the same
+    gate and stopping rule as ours: ``(record, target_T_source)``. Timed as Open3D's call: the best of
+    *reps*, each building the target's k-d tree (Open3D's ``registration_icp`` builds its own inside) and
+    aligning; the conversion to the library's cloud type is outside, as ``_pcd`` is for Open3D.
+
+    Converged = stopped before the cap and one more iteration from its result moving < 1e-8, with inliers.
+    Its Levenberg–Marquardt loop (``optimizer.hpp``) also stops, its own flag unset, when no damping lowers
+    the error any more: at the minimum to rounding, where one more call moves the pose by ~1e-9 (measured on
+    kitti_mini), a little above Open3D's 1e-9 check, so that stop counts as converged; its flag is kept."""
+    sg = _small_gicp()
+    ps, pt = _sg_cloud(src), _sg_cloud(tgt)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        tree = sg.KdTree(pt, num_threads=SMALL_GICP_THREADS)
+        res = sg.align(pt, ps, tree, init_T_target_source=init, registration_type="ICP",
+                       max_correspondence_distance=gate, max_iterations=300, **_SMALL_GICP_FIXED)
+        times.append(time.perf_counter() - t0)
+    T = np.asarray(res.T_target_source)
+    one = sg.align(pt, ps, tree, init_T_target_source=T, registration_type="ICP",
+                   max_correspondence_distance=gate, max_iterations=1, **_SMALL_GICP_FIXED)
+    last = float(np.abs(np.asarray(one.T_target_source) - T).max())
+    iterations = res.iterations + 1  # its count is 0-based
+    stopped = res.converged or iterations < 300
+    return {"small_gicp_time_s": min(times), "small_gicp_iterations": iterations,
+            "small_gicp_converged": bool(stopped and last < 1e-8 and res.num_inliers > 0),
+            "small_gicp_own_flag": bool(res.converged), "small_gicp_one_more_step": last,
+            "small_gicp_inliers": res.num_inliers}, T
+
+
+def small_gicp_point_to_plane(src: np.ndarray, tgt: np.ndarray, reps: int) -> tuple[np.ndarray, float]:
+    """small_gicp's point-to-plane ICP (``'PLANE_ICP'``) with the settings of ours and Open3D's on kitti_mini:
+    target normals from 20 neighbours (its ``estimate_normals``, the same normals as Open3D's to 1e-15),
+    gates 1.0 / 0.5 / 0.3 m with 60 iterations each, identity start: ``(target_T_source, best time of reps)``;
+    timed: k-d tree, normals and the stages.
+
+    Not the same objective as ours and Open3D's: its factor (``plane_icp_factor.hpp``) weighs the residual
+    by the normal element-wise, Σ‖n ∘ (q − T p)‖², where ours and Open3D minimise Σ (n · (q − T p))²
+    (Chen & Medioni 1992). Each is at its own fixed point (each gradient ~1e-11 at its own result, ~8 at
+    the other's on a kitti_mini pair), so the poses differ by mm to cm; the summary reports how much."""
+    sg = _small_gicp()
+    ps, pt = _sg_cloud(src), _sg_cloud(tgt)
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        tree = sg.KdTree(pt, num_threads=SMALL_GICP_THREADS)
+        sg.estimate_normals(pt, tree, num_neighbors=20, num_threads=SMALL_GICP_THREADS)
+        T = np.eye(4)
+        for gate in (1.0, 0.5, 0.3):
+            T = np.asarray(sg.align(pt, ps, tree, init_T_target_source=T, registration_type="PLANE_ICP",
+                                    max_correspondence_distance=gate, max_iterations=60,
+                                    **_SMALL_GICP_FIXED).T_target_source)
+        best = min(best, time.perf_counter() - t0)
+    return T, best
 
 
 def kitti_frames():
@@ -161,13 +257,17 @@ def bench_kitti_mini(reps: int) -> dict:
         for i in range(len(frames) - 1):
             truth = geo.relative(gt[i], gt[i + 1])
             src, tgt = voxel_downsample(frames[i + 1].points, 0.3), voxel_downsample(frames[i].points, 0.3)
-            target, T = IcpTarget(tgt, normal_neighbors=20), np.eye(4)
-            for gate in (1.0, 0.5, 0.3):  # 60 iterations per gate, as Open3D's loop below (ours caps all stages at once)
-                T = icp_point_to_plane(src, target, T, IcpConfig(gates=(gate,), max_iterations=60)).transform
+            T, t_ours = _ours_point_to_plane(src, tgt, reps if _small_gicp() is not None else 1)
             (e_m, e_deg), (o_m, o_deg) = _err(truth, T), _err(truth, _open3d_point_to_plane(src, tgt))
-            p2pl.append({"sequence": seq, "pair": f"{i}->{i + 1}", "err_m": e_m, "err_deg": e_deg,
-                         "open3d_err_m": o_m, "open3d_err_deg": o_deg,
-                         "gt_step_m": float(np.linalg.norm(truth[:3, 3]))})
+            rec = {"sequence": seq, "pair": f"{i}->{i + 1}", "err_m": e_m, "err_deg": e_deg,
+                   "open3d_err_m": o_m, "open3d_err_deg": o_deg,
+                   "gt_step_m": float(np.linalg.norm(truth[:3, 3]))}
+            if _small_gicp() is not None:
+                Ts, t_sg = small_gicp_point_to_plane(src, tgt, reps)
+                rec["small_gicp_err_m"], rec["small_gicp_err_deg"] = _err(truth, Ts)
+                rec["small_gicp_vs_ours_m"], rec["small_gicp_vs_ours_deg"] = _err(Ts, T)
+                rec.update(time_ours_s=t_ours, small_gicp_time_s=t_sg, time_ratio_vs_small_gicp=t_ours / t_sg)
+            p2pl.append(rec)
             pairs.append(compare_open3d(voxel_downsample(frames[i + 1].points, 0.2),
                                         voxel_downsample(frames[i].points, 0.2), np.eye(4), 1.0, reps, truth))
         odo = KissOdometry(KissOdometryConfig(compute_covariance=False))
@@ -180,6 +280,21 @@ def bench_kitti_mini(reps: int) -> dict:
                      "step_err_m": [e for e, _ in steps],
                      "drift_percent": 100.0 * _err(G[-1], odo.world_T_sensor)[0] / dist, "distance_m": dist}
     return {"point_to_plane_vs_gt": p2pl, "kiss": kiss, "point_to_point_vs_open3d": pairs}
+
+
+def _ours_point_to_plane(src: np.ndarray, tgt: np.ndarray, reps: int) -> tuple[np.ndarray, float]:
+    """Our point-to-plane ICP on kitti_mini (voxel 0.3 m, 20-neighbour normals, gates 1.0 / 0.5 / 0.3 m,
+    identity start): ``(target_T_source, best time of reps)``; timed: the target (k-d tree, normals) and
+    the stages."""
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        target, T = IcpTarget(tgt, normal_neighbors=20), np.eye(4)
+        # 60 iterations per gate, as Open3D's loop below (ours caps all stages at once)
+        for gate in (1.0, 0.5, 0.3):
+            T = icp_point_to_plane(src, target, T, IcpConfig(gates=(gate,), max_iterations=60)).transform
+        best = min(best, time.perf_counter() - t0)
+    return T, best
 
 
 def _open3d_point_to_plane(src: np.ndarray, tgt: np.ndarray) -> np.ndarray:
@@ -540,8 +655,63 @@ def _summarise_pairs(groups: dict[str, list]) -> dict:
         if errs:
             detail[name]["median_err_ours_m"] = float(np.median([p["ours_err_m"] for p in errs]))
             detail[name]["median_err_open3d_m"] = float(np.median([p["open3d_err_m"] for p in errs]))
+        detail[name].update(_summarise_small_gicp(pairs))
+    every = [p for pairs in groups.values() for p in pairs]
     return {"median_time_ratio": float(np.median(ratios)), "max_dt": float(max(dts)), "max_dth": float(max(dths)),
-            "per_dataset": detail}
+            "per_dataset": detail, "small_gicp": _summarise_small_gicp(every)}
+
+
+def _stat(f, values: list) -> float | None:
+    return float(f(values)) if values else None
+
+
+def _summarise_small_gicp(pairs: list) -> dict:
+    """small_gicp's point-to-point beside ours on *pairs*: the median time ratio (ours / small_gicp, all
+    pairs as for Open3D) and, where both converged, how far its fixed point is from ours; None without it."""
+    timed = [p for p in pairs if "time_ratio_vs_small_gicp" in p]
+    both = [p for p in timed if p.get("ours_converged") and p["small_gicp_converged"]]
+    dts = [p["small_gicp_fixed_point_dt_m"] for p in both]
+    dths = [p["small_gicp_fixed_point_dtheta_deg"] for p in both]
+    agree = sum(dt <= 1e-3 and dth <= 0.01 for dt, dth in zip(dts, dths))  # Open3D's agreement bounds
+    ratios = [p["time_ratio_vs_small_gicp"] for p in timed]
+    out = {"median_time_ratio_vs_small_gicp": _stat(np.median, ratios),
+           "median_time_small_gicp_s": _stat(np.median, [p["small_gicp_time_s"] for p in timed]),
+           "small_gicp_both_converged": len(both) if timed else None,
+           "small_gicp_fixed_point_agree": agree if timed else None,
+           "median_small_gicp_fixed_point_dt_m": _stat(np.median, dts),
+           "max_small_gicp_fixed_point_dt_m": _stat(max, dts),
+           "median_small_gicp_fixed_point_dtheta_deg": _stat(np.median, dths),
+           "max_small_gicp_fixed_point_dtheta_deg": _stat(max, dths)}
+    errs = [p["small_gicp_err_m"] for p in timed if "small_gicp_err_m" in p]
+    if errs:
+        out["median_err_small_gicp_m"] = float(np.median(errs))
+    return out
+
+
+def _small_gicp_p2plane_summary(p2pl: list) -> dict:
+    """The kitti_mini point-to-plane keys of small_gicp (None without it): largest step error against the
+    SemanticKITTI poses, largest difference to ours, median time ratio ours / small_gicp."""
+    sg = [p for p in p2pl if "small_gicp_err_m" in p]
+
+    def col(key: str) -> list:
+        return [p[key] for p in sg]
+
+    name = "kitti_mini_small_gicp_p2plane_"
+    return {f"{name}max_step_err_m": _stat(max, col("small_gicp_err_m")),
+            f"{name}max_step_err_deg": _stat(max, col("small_gicp_err_deg")),
+            f"{name}max_diff_to_ours_m": _stat(max, col("small_gicp_vs_ours_m")),
+            f"{name}max_diff_to_ours_deg": _stat(max, col("small_gicp_vs_ours_deg")),
+            "kitti_mini_p2plane_median_time_ratio_vs_small_gicp":
+                _stat(np.median, col("time_ratio_vs_small_gicp"))}
+
+
+def _version(dist: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(dist)
+    except PackageNotFoundError:
+        return None
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -556,6 +726,9 @@ def main(argv: list[str] | None = None) -> dict:
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    if _small_gicp() is None:
+        print("warning: small_gicp is not installed (pip install -e '.[bench]'); its keys are null",
+              file=sys.stderr)
     t_start = time.perf_counter()
     kf = kitti_frames()
     kitti = bench_kitti(kf, args.reps)
@@ -589,6 +762,14 @@ def main(argv: list[str] | None = None) -> dict:
         "compiled_point_to_point_max_pose_difference": compiled_p2p["max_pose_difference"],
         "correlative_branch_and_bound_speedup_vs_exhaustive": corr["speedup_vs_exhaustive"],
         "correlative_branch_and_bound_same_maximum": f"{corr['same_maximum']} of {corr['pairs']}",
+        # small_gicp beside Open3D (no target: how far the limit is); ratios are ours / small_gicp.
+        "median_time_ratio_vs_small_gicp": pp["small_gicp"]["median_time_ratio_vs_small_gicp"],
+        **{f"{name}_median_time_ratio_vs_small_gicp": d["median_time_ratio_vs_small_gicp"]
+           for name, d in pp["per_dataset"].items()},
+        "max_small_gicp_fixed_point_dt_m": pp["small_gicp"]["max_small_gicp_fixed_point_dt_m"],
+        "max_small_gicp_fixed_point_dtheta_deg": pp["small_gicp"]["max_small_gicp_fixed_point_dtheta_deg"],
+        **_small_gicp_p2plane_summary(mini["point_to_plane_vs_gt"]),
+        "small_gicp_threads": SMALL_GICP_THREADS if _small_gicp() is not None else None,
     }
     import os
 
@@ -600,6 +781,17 @@ def main(argv: list[str] | None = None) -> dict:
                                       "single-threaded process; wall-clock rates are in intel_odometry (the machine "
                                       "is shared, so wall time measures its load too)",
             "time_ratio": "ours includes covariance + chi2 test; both include kd-tree construction",
+            "time_ratio_vs_small_gicp":
+                "ours / small_gicp on the same pairs, start, gate and stopping rule; small_gicp's time "
+                "includes its k-d tree (and normals for point-to-plane), as Open3D's and ours do; ours includes "
+                "covariance + chi2 test. Its point-to-plane minimises sum |n o r|^2 (element-wise), not "
+                "sum (n . r)^2 as ours and Open3D: a nearby but different fixed point "
+                "(kitti_mini_small_gicp_p2plane_max_diff_to_ours_*)",
+            "threads": {"small_gicp": SMALL_GICP_THREADS,
+                        "ours": "one Python thread; scipy cKDTree queries of >= 20000 points use all cores "
+                                "(IcpConfig.workers = -1), as on kitti_mini's 0.2 m clouds",
+                        "open3d": "its OpenMP default (all cores)", "cores": os.cpu_count()},
+            "small_gicp_version": _version("small-gicp"),
             "load_average": os.getloadavg(),
         },
         "fixed_point_and_time": pp["per_dataset"],
