@@ -21,9 +21,11 @@ pytestmark = pytest.mark.xdist_group("pipeline")
 
 @pytest.fixture(scope="module")
 def sim_log(tmp_path_factory):
-    """300 scans of the corridor world: enough keyframes and closures to exercise the hand-over."""
+    """900 scans of the corridor world, whose tour returns to its earlier passes: enough keyframes and
+    closures to exercise the hand-over (a shorter tour stands and turns near its start, and the robot's
+    own pass is no loop)."""
     d = tmp_path_factory.mktemp("sim")
-    sim = simulate(load_world("corridor"), n_scans=300, spec=LASER_PRESETS["hokuyo_utm30"], seed=3)
+    sim = simulate(load_world("corridor"), n_scans=900, spec=LASER_PRESETS["hokuyo_utm30"], seed=7)
     path = d / "corridor.mcap"
     write_simulated_log(sim, path)
     return path
