@@ -492,6 +492,43 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
     return best, best_rot, best_ox, best_oy
 
 
+@njit(cache=True)
+def cached_nearest(moved, at, d1, radius, cand, tgt, gate, tau, out):  # pragma: no cover - compiled
+    """Gated nearest neighbours of *moved* among each point's cached candidates, where the cache is certified
+    (:mod:`registration.matching`): *cand* ``(N, K)`` holds every target point closer than *radius* to the
+    point's search position *at* (nearest first, ``len(tgt)`` past the last), *d1* the nearest distance
+    there. The point moved by ε, so a neighbour within the gate is at most min(gate, d1 + ε) from it and
+    min(gate, d1 + ε) + ε from *at*: when that is below *radius* − *tau* the cache holds it. *out* gets the
+    index (``len(tgt)`` = unmatched) of certified points, −1 for the others (to be searched again)."""
+    n, k = cand.shape
+    d = moved.shape[1]
+    n_tgt = tgt.shape[0]
+    for i in range(n):
+        e2 = 0.0
+        for a in range(d):
+            v = moved[i, a] - at[i, a]
+            e2 += v * v
+        eps = math.sqrt(e2)
+        if min(gate, d1[i] + eps) + eps >= radius[i] - tau:
+            out[i] = -1
+            continue
+        best = np.inf
+        bi = n_tgt
+        for c in range(k):
+            j = cand[i, c]
+            if j >= n_tgt:
+                break
+            s2 = 0.0
+            for a in range(d):
+                v = moved[i, a] - tgt[j, a]
+                s2 += v * v
+            dist = math.sqrt(s2)
+            if dist < best:
+                best = dist
+                bi = j
+        out[i] = bi if best < gate else n_tgt
+
+
 def compile_all() -> None:
     """Compile every kernel for the argument types the package passes, into numba's on-disk cache
     (``make install`` runs this once, so the first ``slam run`` does not spend ~8 s compiling)."""
@@ -504,6 +541,10 @@ def compile_all() -> None:
                  normals, have, 3, g.points, *g.args())
     score_candidates(np.zeros((4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), np.zeros(1, np.int64),
                      np.zeros((1, 2), np.int64))
+    for dim in (2, 3):
+        q = np.zeros((2, dim))
+        cached_nearest(q, q.copy(), np.zeros(2), np.ones(2), np.zeros((2, 4), np.int64), np.zeros((3, dim)), 0.5, 1e-9,
+                       np.zeros(2, np.int64))
     branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1)
 
 

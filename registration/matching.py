@@ -1,17 +1,17 @@
 """Nearest-neighbour correspondences of points that move between ICP iterations, searched again
 only where the motion could have changed them.
 
-A k = 2 search (within the bound B) at positions m⁰ gives the nearest distance d₁ and the second
-d₂ (∞ when beyond B, so "≥ B"). A point moved by ε = ‖m − m⁰‖ changes each distance by at most ε
-(triangle inequality), so with gate g it keeps its nearest neighbour and its side of the gate while
-
-* inside the gate (d₁ < g):  ε < g − d₁  and  2ε < min(d₂, B) − d₁,
-* outside the gate:          ε < min(d₁, B) − g.
-
-Points within a margin τ (far above rounding) of these limits are searched again; the others keep
-their match, which is exactly what a fresh search returns (the kd-tree search is exact). This is
-the plain triangle-inequality bound; Nüchter, Lingemann & Hertzberg ("Cached k-d tree search for
-ICP algorithms", 3DIM 2007) reuse the previous search differently (restarting from the cached leaf).
+Each search (within the bound B) caches a point's K nearest target points at its position m⁰: every
+target point closer than ρ = min(d_K, B) to m⁰, where d₁ ≤ … ≤ d_K are their distances (ρ = B when fewer
+than K lie within it). After the point moved by ε = ‖m − m⁰‖, a neighbour within the gate g is at most
+min(g, d₁ + ε) from m (the old nearest one is at most d₁ + ε away), hence at most min(g, d₁ + ε) + ε from
+m⁰ (triangle inequality). While that is below ρ, the nearest neighbour within the gate, if any, is among
+the cached points, and comparing their distances at m gives exactly what a fresh search returns (the
+kd-tree search is exact); otherwise the point is searched again. Points within a margin τ (far above
+rounding) of the limit are searched again too. This is the plain triangle-inequality bound; Nüchter,
+Lingemann & Hertzberg ("Cached k-d tree search for ICP algorithms", 3DIM 2007) reuse the previous
+search differently (restarting from the cached leaf). The candidate comparison is compiled
+(:func:`registration.kernels.cached_nearest`).
 """
 
 from __future__ import annotations
@@ -39,6 +39,10 @@ _PARALLEL_MIN_POINTS = 20000
 # before they are searched again, at the price of a longer search for them.
 _BOUND_FACTOR = 2.0
 
+# Neighbours cached per point (K): a point keeps its answer without a search while its motion stays within
+# about half the gap between its nearest and its K-th neighbour; more cost each search and each check.
+_CACHED = 8
+
 
 def pair_distances(moved: Array, matched: Array) -> Array:
     """Euclidean distances (m) of paired rows, computed as cKDTree does (bit for bit)."""
@@ -64,24 +68,19 @@ class IncrementalMatcher:
         self.searched_points = 0  # points searched so far
         self._at: Array | None = None  # positions of each point's last search (the array itself when not incremental)
         self._gate: float | None = None
+        self._data = np.ascontiguousarray(tree.data, dtype=np.float64)
 
     def _workers(self, n: int) -> int:
         return self.workers if n >= _PARALLEL_MIN_POINTS else 1
 
-    def _search(self, points: Array, gate: float) -> tuple[Array, Array, Array, float]:
+    def _search(self, points: Array, gate: float) -> tuple[Array, Array, NDArray[np.intp]]:
+        """Nearest distance, cache radius ρ and the cached candidates ``(N, K)`` of *points* (module docstring)."""
         bound = _BOUND_FACTOR * gate
-        dist, idx = self.tree.query(points, k=2, distance_upper_bound=bound, workers=self._workers(len(points)))
+        k = max(2, min(_CACHED, self.tree.n))
+        dist, idx = self.tree.query(points, k=k, distance_upper_bound=bound, workers=self._workers(len(points)))
         self.searches += 1
         self.searched_points += len(points)
-        return dist[:, 0].copy(), dist[:, 1].copy(), idx[:, 0].copy(), bound
-
-    @staticmethod
-    def _limit(d1: Array, d2: Array, bound: Array, gate: float) -> Array:
-        """Squared certified motion per point (−1 where there is none)."""
-        inside = d1 < gate
-        m = np.where(inside, np.minimum(gate - d1, 0.5 * (np.minimum(d2, bound) - d1)),
-                     np.minimum(d1, bound) - gate) - _TAU
-        return np.where(m > 0.0, m * m, -1.0)
+        return dist[:, 0].copy(), np.minimum(dist[:, -1], bound), np.ascontiguousarray(idx, dtype=np.intp)
 
     def match(self, moved: Array, gate: float) -> NDArray[np.intp]:
         """Index of the nearest tree point closer than *gate* to each row of *moved*, else ``tree.n``."""
@@ -92,20 +91,20 @@ class IncrementalMatcher:
                 self.searches += 1
                 self.searched_points += len(moved)
             return self._i1
-        fresh = self._at is None or self._at.shape != moved.shape
-        if fresh:
-            self._d1, self._d2, self._i1, b = self._search(moved, gate)
-            self._bound = np.full(len(moved), b)
-            self._at = moved.copy()
-        if gate != self._gate:
-            self._lim = self._limit(self._d1, self._d2, self._bound, gate)
-            self._gate = gate
-        if not fresh:
-            disp = moved - self._at
-            sel = np.flatnonzero((disp * disp).sum(axis=1) >= self._lim)
-            if len(sel):
-                pts = moved.take(sel, axis=0)
-                d1, d2, i1, b = self._search(pts, gate)
-                self._at[sel], self._d1[sel], self._d2[sel], self._i1[sel], self._bound[sel] = pts, d1, d2, i1, b
-                self._lim[sel] = self._limit(d1, d2, np.full(len(sel), b), gate)
-        return np.where(self._d1 < gate, self._i1, self.tree.n)
+        n = self.tree.n
+        if self._at is None or self._at.shape != moved.shape:
+            self._d1, self._radius, self._cand = self._search(moved, gate)
+            self._at = np.array(moved, dtype=np.float64, order="C")
+            return np.where(self._d1 < gate, self._cand[:, 0], n)
+        from .kernels import cached_nearest
+
+        out = np.empty(len(moved), dtype=np.intp)
+        cached_nearest(np.ascontiguousarray(moved, dtype=np.float64), self._at, self._d1, self._radius, self._cand,
+                       self._data, float(gate), _TAU, out)
+        sel = np.flatnonzero(out < 0)
+        if len(sel):
+            pts = moved.take(sel, axis=0)
+            d1, radius, cand = self._search(pts, gate)
+            self._at[sel], self._d1[sel], self._radius[sel], self._cand[sel] = pts, d1, radius, cand
+            out[sel] = np.where(d1 < gate, cand[:, 0], n)
+        return out
