@@ -78,6 +78,16 @@ def _cell_of(x, y, ox, oy, cell):  # pragma: no cover - compiled
     return int(math.floor((x - ox) / cell)), int(math.floor((y - oy) / cell))
 
 
+@njit(cache=True, inline="always")
+def _covered(x, y, ci, cj, r, ox, oy, cell):  # pragma: no cover - compiled
+    """Radius around (x, y) that the cells of rings 0 … *r* about its cell (ci, cj) cover: every point
+    closer than this lies in them (at least r·cell, up to (r + 1)·cell by where it sits in its cell)."""
+    lo_x = ox + (ci - r) * cell
+    lo_y = oy + (cj - r) * cell
+    span = (2 * r + 1) * cell
+    return min(x - lo_x, lo_x + span - x, y - lo_y, lo_y + span - y)
+
+
 @njit(cache=True)
 def _nearest(x, y, pts, ox, oy, cell, nx, ny, order, starts, gate):  # pragma: no cover - compiled
     """Index of the point nearest to (x, y) strictly closer than *gate*, else −1; and its squared distance."""
@@ -100,7 +110,7 @@ def _nearest(x, y, pts, ox, oy, cell, nx, ny, order, starts, gate):  # pragma: n
                         if d2 < best_d2:
                             best_d2, best = d2, p
                 j += 1 if edge_i else 2 * r
-        reach = r * cell
+        reach = _covered(x, y, ci, cj, r, ox, oy, cell)
         if reach >= gate or (best >= 0 and best_d2 <= reach * reach):
             break
         if ci - r <= 0 and ci + r >= nx - 1 and cj - r <= 0 and cj + r >= ny - 1:
@@ -119,12 +129,13 @@ def nearest_within(queries, pts, ox, oy, cell, nx, ny, order, starts, gate):  # 
 
 
 @njit(cache=True)
-def _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k):  # pragma: no cover - compiled
-    """PCA normal at point *p* from its *k* nearest points (itself included), as estimate_normals."""
+def _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k, bd, bi):  # pragma: no cover - compiled
+    """PCA normal at point *p* from its *k* nearest points (itself included), as estimate_normals; *bd*, *bi*
+    are work arrays of length k."""
     x, y = pts[p, 0], pts[p, 1]
     ci, cj = _cell_of(x, y, ox, oy, cell)
-    bd = np.full(k, np.inf)
-    bi = np.full(k, -1, np.int64)
+    bd[:] = np.inf
+    bi[:] = -1
     r = 0
     while True:
         for i in range(max(ci - r, 0), min(ci + r, nx - 1) + 1):
@@ -147,7 +158,7 @@ def _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k):  # pragma: no cover
                             bd[s] = d2
                             bi[s] = o
                 j += 1 if edge_i else 2 * r
-        reach = r * cell
+        reach = _covered(x, y, ci, cj, r, ox, oy, cell)
         if bi[k - 1] >= 0 and bd[k - 1] <= reach * reach:
             break
         if ci - r <= 0 and ci + r >= nx - 1 and cj - r <= 0 and cj + r >= ny - 1:
@@ -176,10 +187,12 @@ def _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k):  # pragma: no cover
 @njit(cache=True)
 def normals_2d(index, normals, have, pts, ox, oy, cell, nx, ny, order, starts, k):  # pragma: no cover - compiled
     """Fill ``normals[p]`` for each p in *index* not yet *have* (k-neighbour PCA, k ≤ number of points)."""
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
     for m in range(index.shape[0]):
         p = index[m]
         if not have[p]:
-            normals[p, 0], normals[p, 1] = _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k)
+            normals[p, 0], normals[p, 1] = _normal(p, pts, ox, oy, cell, nx, ny, order, starts, k, bd, bi)
             have[p] = True
 
 
@@ -221,6 +234,8 @@ def plane_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     R = R.copy()
     t = t.copy()
     idx = np.empty(n, np.int64)
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
     it = 0
     converged = False
     for stage in range(gates.shape[0]):
@@ -238,7 +253,7 @@ def plane_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 if q < 0:
                     continue
                 if not have[q]:
-                    normals[q, 0], normals[q, 1] = _normal(q, pts, ox, oy, cell, nx, ny, order, starts, k)
+                    normals[q, 0], normals[q, 1] = _normal(q, pts, ox, oy, cell, nx, ny, order, starts, k, bd, bi)
                     have[q] = True
                 mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + t[0]
                 my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + t[1]
