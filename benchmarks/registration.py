@@ -52,8 +52,9 @@ sys.path.insert(0, str(REPO))
 
 from registration import geometry as geo  # noqa: E402
 from registration.config import IcpConfig, KissOdometryConfig  # noqa: E402
-from registration.icp import IcpTarget, icp  # noqa: E402
+from registration.icp import icp  # noqa: E402
 from registration.point_to_plane import icp_point_to_plane  # noqa: E402
+from registration.target import IcpTarget  # noqa: E402
 from registration.voxel import voxel_downsample  # noqa: E402
 
 KITTI = REPO.parent / "shared" / "data" / "kitti_odometry_00_sample" / "sequences" / "00"
@@ -368,9 +369,9 @@ def bench_compiled_point_to_line(frames, n_pairs: int, reps: int, point_to_point
     are the best of *reps* calls, each including the target's construction (k-d tree or grid, normals).
     *point_to_point*: the same for the SVD point-to-point ICP (kernels.point_icp_2d against icp()'s numpy
     iterations on the k-d tree)."""
+    from registration import alignment
     from registration import point_to_plane as p2l
     from registration.config import IcpConfig
-    from registration.icp import IcpTarget, icp
 
     align = icp if point_to_point else p2l.icp_point_to_plane
 
@@ -386,7 +387,7 @@ def bench_compiled_point_to_line(frames, n_pairs: int, reps: int, point_to_point
         src, guess = frames[k + 1].points, geo.relative(ref.odom, frames[k + 1].odom)
         poses = {}
         for compiled in (True, False):
-            p2l.COMPILED_2D = compiled
+            alignment.COMPILED_2D = compiled
             best = np.inf
             for _ in range(reps):
                 t0 = time.perf_counter()
@@ -396,7 +397,7 @@ def bench_compiled_point_to_line(frames, n_pairs: int, reps: int, point_to_point
                     poses[compiled] = None
                 best = min(best, time.perf_counter() - t0)
             times[compiled].append(best)
-        p2l.COMPILED_2D = True
+        alignment.COMPILED_2D = True
         if poses[True] is not None and poses[False] is not None:
             diffs.append(float(np.abs(poses[True] - poses[False]).max()))
     return {"pairs": len(idx), "both_aligned": len(diffs),

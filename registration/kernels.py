@@ -213,7 +213,7 @@ def _match_all(S, R, t, idx, pts, ox, oy, cell, nx, ny, order, starts, gate):  #
 @njit(cache=True)
 def _pair_weight(S, R, t, p, pts, q, robust, scale):  # pragma: no cover - compiled
     """Robust weight of the pair (source p moved by (R, t), grid point q) from its distance, as
-    registration.icp.robust_weights: 1, Huber min(1, k/d) or Cauchy 1/(1 + (d/k)²)."""
+    registration.alignment.robust_weights: 1, Huber min(1, k/d) or Cauchy 1/(1 + (d/k)²)."""
     if robust == 0:
         return 1.0
     dx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + t[0] - pts[q, 0]

@@ -13,7 +13,7 @@ guess; otherwise a constant-velocity guess (the last increment) is used.
 
 * :class:`KissOdometry` — KISS-ICP (Vizzo et al., "KISS-ICP: In Defense of Point-to-Point ICP",
   RA-L 2023) through ``kiss_icp.kiss_icp.KissICP``; planar scans become z = 0 points, deskewing off.
-  KISS-ICP gives no covariance: it is computed by :func:`registration.icp.evaluate_alignment` of the
+  KISS-ICP gives no covariance: it is computed by :func:`registration.alignment.evaluate_alignment` of the
   current scan against the previous one at the KISS pose (plane model, gate 3σ of KISS's threshold).
 * :class:`IcpOdometry` — our SVD-ICP (:func:`registration.icp.icp`) of each scan against the union
   of the last ``map_scans`` scans in the world frame.
@@ -30,11 +30,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import geometry as geo
+from .alignment import evaluate_alignment
 from .config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
 from .errors import DegenerateInputError, GeometryError
 from .frame import Frame
-from .icp import IcpTarget, evaluate_alignment, icp
+from .icp import icp
 from .point_to_plane import PosePrior, icp_point_to_plane
+from .target import IcpTarget
 from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]

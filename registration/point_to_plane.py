@@ -13,62 +13,19 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
+from . import alignment
 from . import geometry as geo
+from .alignment import IcpResult, as_target, evaluate_matches, prepare, robust_weights
 from .config import IcpConfig
 from .errors import DegenerateInputError
 from .geometry import se3_exp
-from .icp import IcpResult, IcpTarget, _as_target, _evaluate, _prepare, gated_nearest, robust_weights
 from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher
+from .target import IcpTarget, gated_nearest
 
 Array = NDArray[np.float64]
 
-__all__ = ["PosePrior", "estimate_normals", "icp_point_to_plane"]
-
-#: 2D alignments without a prior run the compiled iterations (registration.kernels); the numpy loop
-#: below is the same algorithm, kept for 3D, for priors and as the reference the tests compare with.
-COMPILED_2D = True
-#: IcpConfig.robust → the compiled loop's code (trimming needs a partial sort: numpy loop)
-_ROBUST_CODES = {"none": 0, "huber": 1, "cauchy": 2}
-
-
-def estimate_normals(points: Array, tree: cKDTree, k: int = 10, workers: int = -1,
-                     return_eigenvalues: bool = False) -> Array | tuple[Array, Array]:
-    """Unit normals ``(N, d)`` at *points* from the *k* nearest points of *tree* (PCA, Hoppe 1992).
-
-    The normal is the eigenvector of the smallest eigenvalue of the neighbours' scatter matrix;
-    its sign is arbitrary (only n nᵀ is used). With *return_eigenvalues* (3D only) the ascending
-    scatter eigenvalues ``(N, 3)`` are returned too, for planarity tests."""
-    k = min(k, tree.n)
-    _, nn = tree.query(points, k=k, workers=workers if len(points) >= 20000 else 1)
-    data = tree.data
-    # One contiguous (N, k) array per axis, centred on the neighbourhood mean: cheaper than the
-    # (N, k, d) gather and strided reductions for the few-point batches of 2D scans.
-    cols = [data[:, j].take(nn) for j in range(data.shape[1])]
-    for c in cols:
-        c -= (c.sum(axis=1) / k)[:, None]
-    if len(cols) == 2:
-        # 2×2 scatter [[a, b], [b, c]]: the principal axis is at ½·atan2(2b, a − c); the normal is ⊥ to it.
-        cx, cy = cols
-        a = np.einsum("nk,nk->n", cx, cx)
-        b = np.einsum("nk,nk->n", cx, cy)
-        cc = np.einsum("nk,nk->n", cy, cy)
-        phi = 0.5 * np.arctan2(2.0 * b, a - cc)
-        out = np.empty((len(phi), 2))
-        np.negative(np.sin(phi), out=out[:, 0])
-        np.cos(phi, out=out[:, 1])
-        return out
-    C = np.empty((len(nn), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            C[:, i, j] = np.einsum("nk,nk->n", cols[i], cols[j])
-            if j != i:
-                C[:, j, i] = C[:, i, j]
-    ev, V = np.linalg.eigh(C)
-    if return_eigenvalues:
-        return V[:, :, 0], ev
-    return V[:, :, 0]
+__all__ = ["PosePrior", "icp_point_to_plane"]
 
 
 @dataclass(frozen=True)
@@ -94,10 +51,10 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     the result uses the plane model, without the prior, whatever ``config.covariance_model`` says.
     """
     config = (config or IcpConfig()).model_copy(update={"covariance_model": "plane"})
-    tgt = _as_target(target, config)
-    S, T = _prepare(source, tgt, init, config)
+    tgt = as_target(target, config)
+    S, T = prepare(source, tgt, init, config)
     d = tgt.dim
-    if d == 2 and prior is None and COMPILED_2D and config.robust in _ROBUST_CODES:
+    if d == 2 and prior is None and alignment.COMPILED_2D and config.robust in alignment.ROBUST_CODES:
         return _icp_plane_2d_compiled(S, tgt, T, config)
     n_tgt = len(tgt.points)
     matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=len(S) >= INCREMENTAL_MIN_POINTS)
@@ -148,7 +105,7 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     if moved is None:
         moved = S @ R.T + t
     gate = config.gates[-1]
-    return _evaluate(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
+    return evaluate_matches(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
 
 
 def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
@@ -158,7 +115,7 @@ def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
     g = tgt.grid
     R, t, it, converged, status, stage, pairs = kernels.plane_icp_2d(
         np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
-        config.max_iterations, config.tol_translation, config.tol_rotation, _ROBUST_CODES[config.robust],
+        config.max_iterations, config.tol_translation, config.tol_rotation, alignment.ROBUST_CODES[config.robust],
         config.robust_scale, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
         g.points, *g.args())
     if status == 1:
@@ -170,7 +127,7 @@ def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
     T[:2, :2], T[:2, 3] = R, t
     moved = S @ R.T + t
     gate = config.gates[-1]
-    return _evaluate(S, tgt, T, moved, gated_nearest(tgt, moved, gate), gate, config, it, converged)
+    return evaluate_matches(S, tgt, T, moved, gated_nearest(tgt, moved, gate), gate, config, it, converged)
 
 
 def _add_prior(H: Array, g: Array, prior: PosePrior, R: Array, t: Array, d: int) -> tuple[Array, Array]:

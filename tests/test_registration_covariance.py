@@ -8,7 +8,8 @@ import pytest
 from registration import geometry as geo
 from registration.config import IcpConfig
 from registration.covariance import chi2_test, jacobian_plane, jacobian_point
-from registration.icp import IcpTarget, icp
+from registration.icp import icp
+from registration.target import IcpTarget
 
 SIGMA = 0.01  # m, residual standard deviation per coordinate
 

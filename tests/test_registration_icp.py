@@ -9,8 +9,9 @@ from scipy.spatial import cKDTree
 from registration import geometry as geo
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError, GeometryError
-from registration.icp import IcpTarget, icp
-from registration.point_to_plane import estimate_normals, icp_point_to_plane
+from registration.icp import icp
+from registration.point_to_plane import icp_point_to_plane
+from registration.target import IcpTarget, estimate_normals
 from registration.voxel import voxel_downsample
 from tests.conftest import DATA, shared_path
 
@@ -178,14 +179,14 @@ def test_prior_of_zero_information_changes_nothing_and_a_stiff_prior_wins(monkey
     """The MAP step's two limits: a prior of zero information gives the plain point-to-plane result
     of the same (numpy) loop bit for bit, and the compiled 2D loop's to rounding; a prior of 10¹²
     information pins the pose to the prior's mean (1e-6) however well the points say otherwise."""
-    from registration import point_to_plane
+    from registration import alignment
     from registration.point_to_plane import PosePrior
 
     P = _room_2d()
     T = geo.xytheta_to_matrix(0.12, -0.05, 0.03)
     src = geo.transform_points(geo.inverse(T), P)
     compiled = icp_point_to_plane(src, P, None, _EXACT)
-    monkeypatch.setattr(point_to_plane, "COMPILED_2D", False)
+    monkeypatch.setattr(alignment, "COMPILED_2D", False)
     plain = icp_point_to_plane(src, P, None, _EXACT)
     assert np.abs(plain.transform - T).max() < 1e-9
     assert np.abs(compiled.transform - plain.transform).max() < 1e-12

@@ -7,14 +7,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from registration import alignment, kernels
 from registration import geometry as geo
-from registration import kernels
-from registration import point_to_plane
 from registration.config import IcpConfig
 from registration.correlative import LikelihoodPyramid
 from registration.errors import DegenerateInputError
-from registration.icp import IcpTarget, gated_nearest
-from registration.point_to_plane import estimate_normals, icp_point_to_plane
+from registration.point_to_plane import icp_point_to_plane
+from registration.target import IcpTarget, estimate_normals, gated_nearest
 
 
 def _scan_like(rng: np.random.Generator, n: int = 1500) -> np.ndarray:
@@ -116,7 +115,7 @@ def test_compiled_2d_icp_equals_the_numpy_loop(monkeypatch, robust, seed, loop, 
         align, fit = icp, dict(max_iterations=300, tol_translation=1e-10, tol_rotation=1e-10)
     cfg = IcpConfig(gates=gates, robust=robust, robust_scale=0.06, sigma=0.03, workers=1, **fit)
     fast = align(src, P, None, cfg)
-    monkeypatch.setattr(point_to_plane, "COMPILED_2D", False)
+    monkeypatch.setattr(alignment, "COMPILED_2D", False)
     ref = align(src, P, None, cfg)
     plane = loop == "plane"
     assert np.abs(fast.transform - ref.transform).max() < (1e-10 if plane else 1e-9)
@@ -129,7 +128,7 @@ def test_compiled_2d_icp_equals_the_numpy_loop(monkeypatch, robust, seed, loop, 
 def test_both_2d_point_to_point_loops_refuse_too_few_pairs(monkeypatch, compiled):
     from registration.icp import icp
 
-    monkeypatch.setattr(point_to_plane, "COMPILED_2D", compiled)
+    monkeypatch.setattr(alignment, "COMPILED_2D", compiled)
     P = _room()
     with pytest.raises(DegenerateInputError, match=r"ICP iteration 1: 0 pairs within 1.0 m \(need 10\)"):
         icp(P + 50.0, P, None, IcpConfig(gates=(1.0, 0.5)))
@@ -137,7 +136,7 @@ def test_both_2d_point_to_point_loops_refuse_too_few_pairs(monkeypatch, compiled
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_both_2d_loops_refuse_too_few_pairs_and_a_singular_system(monkeypatch, compiled):
-    monkeypatch.setattr(point_to_plane, "COMPILED_2D", compiled)
+    monkeypatch.setattr(alignment, "COMPILED_2D", compiled)
     P = _room()
     far = P + 50.0
     with pytest.raises(DegenerateInputError, match=r"iteration 1: 0 pairs within 1.0 m \(need 10\)"):

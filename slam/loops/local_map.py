@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from registration import correlative
 from registration import geometry as G
-from registration.icp import IcpTarget
+from registration.target import IcpTarget
 from slam.keyframes import Keyframe
 
 Array = NDArray[np.float64]

@@ -34,9 +34,10 @@ from scipy.stats import chi2
 
 from registration import correlative
 from registration import geometry as G
+from registration.alignment import IcpResult, evaluate_alignment
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError
-from registration.icp import IcpResult, evaluate_alignment, icp
+from registration.icp import icp
 from registration.point_to_plane import icp_point_to_plane
 from slam.keyframes import Keyframe
 

@@ -3,7 +3,7 @@
 Poses here are robot-base poses ``world_T_base`` (4×4). The odometry source registers sensor
 frames; ``base_T_sensor`` converts. Each odometry edge's covariance is the registration
 covariance σ²(∂²f/∂x²)⁻¹ of the keyframe's scan against the previous keyframe's scan at the
-odometry's relative pose (:func:`registration.icp.evaluate_alignment`, plane model, a-priori σ),
+odometry's relative pose (:func:`registration.alignment.evaluate_alignment`, plane model, a-priori σ),
 the same for KISS-ICP and our ICP, scaled up by the a-posteriori variance factor σ̂²/σ² when the
 scan fits worse than σ (config ``odometry.edge_sigma_from_residuals``), plus a noise floor growing
 with the motion (config ``odometry.floor_*``) because that covariance treats the previous scan as
@@ -28,11 +28,12 @@ from numpy.typing import NDArray
 
 from registration import correlative
 from registration import geometry as G
+from registration.alignment import evaluate_alignment
 from registration.config import IcpConfig
 from registration.errors import DegenerateInputError
 from registration.frame import Frame
-from registration.icp import IcpTarget, evaluate_alignment
 from registration.odometry import Odometry, OdometryStep
+from registration.target import IcpTarget
 from registration.voxel import voxel_downsample
 from slam.keyframes import Keyframe, KeyframeSelector
 
