@@ -64,11 +64,10 @@ class ParsedGraph:
     path: str
     dim: int | None = None
     vertices: list[tuple[int, list[float], int]] = field(default_factory=list)  # id, params, line
-    # i, j, params, information entries (g2o upper triangle, or TORO order when toro=True), kind, kernel, line
+    # i, j, params, information entries (upper triangle, row-major, as g2o writes them), kind, kernel, line
     edges: list[tuple[int, int, list[float], list[float], str | None, RobustKernel | None, int]] = field(
         default_factory=list
     )
-    toro: bool = False
     fixed: list[int] = field(default_factory=list)
 
     def set_dim(self, dim: int, lineno: int) -> None:
@@ -167,13 +166,7 @@ def build_graph(p: ParsedGraph) -> PoseGraph:
         g.add_node(vid)
     infos = np.zeros((0, g.dof, g.dof))
     if p.edges:
-        raw = np.asarray([e[3] for e in p.edges], dtype=float)
-        if p.toro:
-            from .toro import toro_info_to_matrix
-
-            infos = toro_info_to_matrix(raw)
-        else:
-            infos = upper_to_full(raw, g.dof)
+        infos = upper_to_full(np.asarray([e[3] for e in p.edges], dtype=float), g.dof)
         # Only an edge without positive SE-Sync weights is unusable by every back end; one whose whole
         # information is indefinite is refused by GTSAM alone (PoseGraph.indefinite_edges).
         kappa, tau = sesync_weights(infos, p.dim)

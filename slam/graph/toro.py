@@ -16,8 +16,8 @@ import numpy as np
 from registration.atomic import atomic_open
 from registration.errors import GraphFormatError
 
-from .g2o import (TAG_PREFIX, ParsedGraph, build_graph, format_numbers, format_tag, graph_lines, parse_id, parse_numbers,
-                  parse_tag)
+from .g2o import (TAG_PREFIX, ParsedGraph, build_graph, format_numbers, format_tag, full_to_upper, graph_lines, parse_id,
+                  parse_numbers, parse_tag)
 from .posegraph import GraphError, PoseGraph, RobustKernel
 
 __all__ = ["read_toro", "write_toro", "toro_info_to_matrix", "matrix_to_toro_info"]
@@ -39,7 +39,7 @@ def matrix_to_toro_info(M: np.ndarray) -> np.ndarray:
 def read_toro(path: str | os.PathLike[str]) -> PoseGraph:
     """Read a 2D TORO graph. Raises :class:`GraphFormatError` naming the file and line."""
     path_s = str(path)
-    p = ParsedGraph(path_s, dim=2, toro=True)
+    p = ParsedGraph(path_s, dim=2)
     pending: tuple[str | None, RobustKernel | None] | None = None
     for lineno, s in graph_lines(path_s):
         if s.startswith("#"):
@@ -58,7 +58,8 @@ def read_toro(path: str | os.PathLike[str]) -> PoseGraph:
             vals = parse_numbers(path_s, lineno, f[3:], 9, "EDGE2")
             kind, kernel = pending if pending else (None, None)
             pending = None
-            p.edges.append((i, j, vals[:3], vals[3:], kind, kernel, lineno))
+            info = full_to_upper(toro_info_to_matrix(vals[3:])).tolist()  # the parser's (g2o) order
+            p.edges.append((i, j, vals[:3], info, kind, kernel, lineno))
         elif f[0] in ("VERTEX3", "EDGE3"):
             raise GraphFormatError(path_s, f"line {lineno}", f"3D TORO record {f[0]} is not supported (use g2o)")
         else:
