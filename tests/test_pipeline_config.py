@@ -7,7 +7,7 @@ import pytest
 from registration.errors import ConfigError
 from registration.odometry import IcpOdometry, KissOdometry
 from slam.pipeline.config import SlamConfig
-from slam.pipeline.run import make_odometry
+from slam.pipeline.odometry_source import make_odometry
 
 
 def test_yaml_round_trip(tmp_path):

@@ -46,7 +46,7 @@ def test_lumpy_wheel_odometry_edges_are_dropped_and_the_rest_kept():
     """Turning in place with wheel odometry that stalls for four scans and then reports the whole turn: the wheel
     edges over the stall and over the lump disagree with the ICP edges by tens of degrees and are left out;
     the wheel edges of the steady turn before and after are kept."""
-    from slam.pipeline.run import make_odometry
+    from slam.pipeline.odometry_source import make_odometry
     from tests.test_registration_odometry import _turning_in_place
 
     frames, _ = _turning_in_place([8.0] * 4 + [0.0] * 4 + [40.0] + [8.0] * 6)
@@ -163,7 +163,7 @@ def test_on_a_simulated_log_the_calibration_scales_follow_the_wheel_noise(tmp_pa
     wheels sit below the registration's own noise and the scale goes to its lower bound (> 2×; measured 9.5)."""
     from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
     from slam.logs import open_log
-    from slam.pipeline.run import make_odometry
+    from slam.pipeline.odometry_source import make_odometry
 
     scales = {}
     for alpha in (0.002, 0.05):

@@ -22,6 +22,7 @@ from registration.frame import Frame
 from .child import ChildProcess, Reply, peak_memory_mb
 from .config import SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, ScanTrack, WheelEdge
+from .odometry_source import make_odometry
 
 Ready = tuple[Keyframe, OdometryEdge | None, WheelEdge | None]
 
@@ -50,8 +51,6 @@ def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
 
 def _new_front_end(config: SlamConfig, planar: bool) -> FrontEnd:
     """A front end keeping only its latest keyframe: the caller keeps those it takes from ``ready``."""
-    from .run import make_odometry
-
     return FrontEnd(config, make_odometry(config, planar), keep_keyframes=False)
 
 

@@ -30,6 +30,7 @@ from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig, SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, WheelEdge
 from slam.loops import LoopClosure
+from .odometry_source import make_odometry
 from .online_graph import OnlineGraph
 from .trajectory import interpolate_scan_poses
 
@@ -104,8 +105,6 @@ def record_front_end(frames: Iterable[Frame], config: SlamConfig,
     *progress* is called with (scans read, keyframes) after every scan. Raises GpslamError for an empty log.
     """
     from slam.blas import single_blas_thread
-
-    from .run import make_odometry
 
     t0 = time.perf_counter()
     front: FrontEnd | None = None
