@@ -128,20 +128,26 @@ def test_3d_scan_context_of_a_real_scan_recovers_the_heading_and_keeps_its_ring_
 
 
 def test_3d_index_finds_the_place_among_other_streets():
-    """All 40 kitti_mini scans (four streets) indexed, 0.5 m voxels as keyframes store them: a scan of one
-    street seen turned by 1 rad retrieves scans of its own street first, with the heading."""
+    """All 40 kitti_mini scans (four streets) indexed whole, as the loop closer describes 3D keyframes: a
+    scan of one street seen turned by 1 rad (and thinned to 0.5 m voxels, so not the same points) retrieves
+    scans of its own street first, with the heading; and every other street is beyond the descriptor
+    threshold."""
     from registration.voxel import voxel_downsample
+    from slam.loops.config import LoopConfig
 
     idx = DescriptorIndex(SCAN_CONTEXT_3D)
     street = []
     scans = {s: _kitti(s) for s in ("00", "01", "07", "10")}
     for s, frames in scans.items():
         for f in frames:
-            idx.add(len(street), voxel_downsample(f.points, 0.5))
+            idx.add(len(street), f.points)
             street.append(s)
     sector = 2 * np.pi / SCAN_CONTEXT_3D.n_sectors
+    threshold = LoopConfig().descriptor_max_distance
     for s in ("00", "01", "10"):
         q = voxel_downsample(G.transform_points(G.xytheta_to_matrix(0, 0, 1.0), scans[s][5].points), 0.5)
         hits = idx.query(polar_descriptor(q, SCAN_CONTEXT_3D), k=3)
+        assert all(d > threshold for i, d, _ in idx.query(polar_descriptor(q, SCAN_CONTEXT_3D), k=40)
+                   if street[i] != s)
         assert all(street[i] == s for i, _, _ in hits)
         assert abs(G.wrap_angle(hits[0][2] + 1.0)) <= 1.5 * sector
