@@ -90,12 +90,14 @@ def _spread(pool: NDArray[np.int64], quota: int, chosen: list[int], spacing: int
     return added
 
 
-def other_pass(path_m: Array, dist_m: Array, j: int, radius_m: float) -> NDArray[np.bool_]:
-    """Which keyframes ``0 … len(dist_m) − 1`` belong to another pass than keyframe *j*: the path between them
-    (*path_m*, cumulative metres per keyframe) is longer than their distance plus twice the overlap radius
-    — the trajectory left the place and came back, rather than seeing it still (those the odometry ties)."""
-    n = len(dist_m)
-    return path_m[j] - path_m[:n] >= dist_m + 2.0 * radius_m
+def other_pass(path_m: Array, dist_m: Array, j: int, radius_m: float,
+               places: NDArray[np.int64] | None = None) -> NDArray[np.bool_]:
+    """Which keyframes (*places*, else ``0 … len(dist_m) − 1``, at distances *dist_m* from keyframe *j*) belong to
+    another pass than *j*: the path between them (*path_m*, cumulative metres per keyframe) is longer than their
+    distance plus twice the overlap radius — the trajectory left the place and came back, rather than seeing
+    it still (those the odometry ties)."""
+    before = path_m[: len(dist_m)] if places is None else path_m[places]
+    return path_m[j] - before >= dist_m + 2.0 * radius_m
 
 
 def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig,

@@ -163,10 +163,11 @@ class LoopCloser:
         hits = self.index.query(desc, k=c.descriptor_candidates, exclude_after=j - c.exclude_recent_keyframes)
         # Places of the same pass look alike because the sensor still sees them (a car's street behind
         # it): only other passes are revisits, by the spatial candidates' rule on the estimate's distance.
+        places = np.array([i for i, _, _ in hits], dtype=np.int64)
         dim = 2 if self.planar else 3
-        apart = np.linalg.norm(poses[: j + 1, :dim, 3] - poses[j, :dim, 3], axis=1)
-        other = C.other_pass(np.asarray(self._path_m), apart, j, radius)
-        hits = [(i, yaw) for i, dist, yaw in hits if dist <= c.descriptor_max_distance and other[i]
+        apart = np.linalg.norm(poses[places, :dim, 3] - poses[j, :dim, 3], axis=1)
+        other = C.other_pass(np.asarray(self._path_m), apart, j, radius, places)
+        hits = [(i, yaw) for (i, dist, yaw), o in zip(hits, other) if o and dist <= c.descriptor_max_distance
                 and all(abs(i - t) > c.local_map_keyframes for t in tried)]
         sector = 2.0 * np.pi / self.index.cfg.n_sectors
         for cand in C.descriptor(hits, keyframes, poses, j, uncertainty, c, self.planar, radius, sector):

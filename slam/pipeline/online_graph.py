@@ -57,14 +57,7 @@ class OnlineGraph:
         unc = self.uncertainty.from_node(kf.id, poses[:, : self.dim, 3])
         new, relocalise = self.closer.detect(keyframes, poses, kf.id, unc)
         t2 = time.perf_counter()
-        for lc in new:
-            be.add_loop(lc)
-            self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
-        self.loops.extend(new)
-        if relocalise:
-            be.relocalise()  # a group of closures the estimate could not vouch for: move the graph onto them
-        else:
-            be.update(loop_added=bool(new))
+        self._add_closures(new, relocalise)
         self.times["loop_closure_s"] += t2 - t1
         self.times["backend_s"] += (t1 - t0) + (time.perf_counter() - t2)
         return new
@@ -72,20 +65,25 @@ class OnlineGraph:
     def finish(self) -> Array:
         """The groups of the closures still pending when the log ended, then the final batch solve (with
         pruning of violated closures); ``(K, 4, 4)`` keyframe poses."""
-        be = self.backend
         t0 = time.perf_counter()
-        while (decided := self.closer.close_open_window(be.poses)) is not None:
-            group, relocalise = decided
-            for lc in group:
-                be.add_loop(lc)
-                self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
-            self.loops.extend(group)
-            if relocalise:
-                be.relocalise()
-            elif group:
-                be.update(loop_added=True)
+        while (decided := self.closer.close_open_window(self.backend.poses)) is not None:
+            if decided[0]:
+                self._add_closures(*decided)
         self.times["loop_closure_s"] += time.perf_counter() - t0
-        return be.finish()
+        return self.backend.finish()
+
+    def _add_closures(self, closures: list[LoopClosure], relocalise: bool) -> None:
+        """Closures into the graph and the uncertainty search, then the estimate's update: a batch move onto
+        them when they are a group the estimate could not vouch for (*relocalise*), else an iSAM2 step."""
+        be = self.backend
+        for lc in closures:
+            be.add_loop(lc)
+            self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
+        self.loops.extend(closures)
+        if relocalise:
+            be.relocalise()
+        else:
+            be.update(loop_added=bool(closures))
 
     @property
     def stats(self) -> dict:
