@@ -107,12 +107,13 @@ class LoopCloser:
             i_T_h = G.inverse(keyframes[h.i].base_T_sensor) @ h.measurement @ keyframes[h.j].base_T_sensor
             self._run(C.hypothesis(h.i, h.j, i_T_h, keyframes, poses, j, c, p.map_half), keyframes, poses, ref, out)
             tried.add(h.i)
-        if not out:
-            self._descriptor(keyframes, poses, j, uncertainty, radius, ref, out, tried)
+        desc = None if self.index is None else polar_descriptor(self._described(kj), self.index.cfg)
+        if not out and desc is not None:
+            self._descriptor(keyframes, poses, j, desc, uncertainty, radius, ref, out, tried)
         if self.planar and c.global_search:  # closures with recent passes say nothing of the old places out of reach
             self._global(keyframes, poses, j, uncertainty, radius, ref, out)
-        if self.index is not None:
-            self.index.add(j, self._described(kj))
+        if desc is not None:
+            self.index.insert(j, desc)
         group = self.acceptance.decide(j, poses)
         return out + group, bool(group) and self.acceptance.relocalises(group, poses)
 
@@ -154,12 +155,12 @@ class LoopCloser:
         whole); in 2D the kept points, which reach past the descriptor's 15 m."""
         return kf.points if self.planar else kf.frame.points
 
-    def _descriptor(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty,
+    def _descriptor(self, keyframes: list[Keyframe], poses: Array, j: int, desc: Array, uncertainty: NodeUncertainty,
                     radius: float, ref: Reference | None, out: list[LoopClosure], tried: set[int]) -> None:
+        """Candidates from the places whose descriptors are nearest the new keyframe's *desc*."""
         c = self.config
         if self.index is None or c.descriptor_candidates == 0:
             return
-        desc = polar_descriptor(self._described(keyframes[j]), self.index.cfg)
         hits = self.index.query(desc, k=c.descriptor_candidates, exclude_after=j - c.exclude_recent_keyframes)
         # Places of the same pass look alike because the sensor still sees them (a car's street behind
         # it): only other passes are revisits, by the spatial candidates' rule on the estimate's distance.

@@ -135,7 +135,13 @@ class DescriptorIndex:
         return self._n
 
     def add(self, key_id: int, points: Array) -> Array:
+        """Describe *points* and store the place as *key_id*; returns its descriptor."""
         d = polar_descriptor(points, self.cfg)
+        self.insert(key_id, d)
+        return d
+
+    def insert(self, key_id: int, d: Array) -> None:
+        """Store the place *key_id* by its descriptor *d* (:func:`polar_descriptor` with this index's config)."""
         key = ring_key(d, self.cfg)
         if self._n == len(self._keys):
             cap = max(64, 2 * self._n)
@@ -146,7 +152,6 @@ class DescriptorIndex:
         self._desc.append(d)
         self._keys[self._n], self._ids[self._n] = key, key_id
         self._n += 1
-        return d
 
     def query(self, desc: Array, k: int = 10, exclude_after: int | None = None) -> list[tuple[int, float, float]]:
         """The *k* nearest stored places by ring key, re-ranked by shift distance.
