@@ -78,7 +78,7 @@ class MappingProcess:
         if self.online and self._schedule.due():
             self._child.send(("recompose", keyframe_poses))
 
-    def finish(self, keyframes: list[Keyframe], keyframe_poses: NDArray) -> OccupancyMap | None:
+    def finish(self, keyframe_poses: NDArray) -> OccupancyMap | None:
         """The final map at the final keyframe poses (waits for the child)."""
         self._child.send(("finish", keyframe_poses))
         _, occ, self.scans_fused, self.time_s, self.peak_memory_mb = self._child.receive(wait=True)  # type: ignore[misc]

@@ -99,6 +99,7 @@ class MapBuilder:
         self._count_in_current = 0
         self._schedule = RecomposeSchedule(config.recompose_every_keyframes)
         self.scans_fused = 0
+        self._baseline_scans: list[Frame] = []  # the baselines' planar scans, mapped at the final poses
 
     @property
     def enabled(self) -> bool:
@@ -121,9 +122,12 @@ class MapBuilder:
         return GridGeometry.covering(lo, hi, self.config.params.resolution, margin=h)
 
     def add_keyframe(self, kf: Keyframe, pose: Array) -> None:
-        """Fuse keyframe *kf* (at its current estimate *pose*, world_T_base) into the current submap."""
+        """Fuse keyframe *kf* (at its current estimate *pose*, world_T_base) into the current submap; for the
+        baselines, which map every keyframe at the final poses, keep its planar scan."""
         if self.online:
             self.add_scan(kf.id, self.scan_for(kf), pose)
+        elif self.enabled:
+            self._baseline_scans.append(self.scan_for(kf))
 
     def add_scan(self, keyframe_id: int, scan: Frame, pose: Array) -> None:
         """Fuse keyframe *keyframe_id*'s planar *scan* (:meth:`scan_for`) at *pose* into the current submap."""
@@ -166,10 +170,9 @@ class MapBuilder:
     def close(self) -> None:
         """Nothing to stop (the interface of :class:`~slam.pipeline.mapping_process.MappingProcess`)."""
 
-    def finish(self, keyframes: list[Keyframe], keyframe_poses: Array) -> OccupancyMap | None:
-        """The final map at the final keyframe poses."""
-        scans = [] if self.online or not self.enabled else [self.scan_for(kf) for kf in keyframes]
-        return self.finish_scans(scans, keyframe_poses)
+    def finish(self, keyframe_poses: Array) -> OccupancyMap | None:
+        """The final map at the final poses of the keyframes added."""
+        return self.finish_scans(self._baseline_scans, keyframe_poses)
 
     def finish_scans(self, scans: list[Frame], keyframe_poses: Array) -> OccupancyMap | None:
         """:meth:`finish` from the keyframes' planar scans (used by the baselines only)."""

@@ -99,6 +99,7 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
         new = graph.add(keyframes, edge, wheel)
         t5 = time.perf_counter()
         mapper.add_keyframe(kf, graph.backend.poses[kf.id])
+        kf.drop_cloud()  # loop closure and mapping have read it: a 3D cloud is not needed again
         if new:
             mapper.refresh(graph.backend.poses)
         times["mapping_s"] += time.perf_counter() - t5
@@ -133,7 +134,7 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
         check = self_check(keyframes, kf_poses, graph.loops, planar).as_dict()
         times["self_check_s"] = time.perf_counter() - t7
         t6 = time.perf_counter()
-        occ = mapper.finish(keyframes, kf_poses)
+        occ = mapper.finish(kf_poses)
         if isinstance(mapper, MappingProcess):
             times["mapping_s"] += mapper.time_s  # the child's busy time; this process only sent it scans
         else:
