@@ -35,8 +35,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from core import geometry as G  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
-from registration import geometry as G  # noqa: E402
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import SlamConfig  # noqa: E402
 from slam.pipeline.loop_replay import FrontEndRecord, record_front_end, replay_loops  # noqa: E402

@@ -40,19 +40,19 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from core.geometry import matrix_to_xytheta, xytheta_to_matrix  # noqa: E402
 from evaluation.sim import LASER_PRESETS, PROCEDURAL_WORLDS, load_world  # noqa: E402
 from evaluation.sim.coverage import plan_space, scan_coverage, unreachable_space  # noqa: E402
 from evaluation.sim.simulate import simulate  # noqa: E402
+from mapping.beams import beam_samples  # noqa: E402
 from mapping.config import MappingConfig  # noqa: E402
 from mapping.fastgpom import FastGPOM, ring_training_set  # noqa: E402
-from mapping.beams import beam_samples  # noqa: E402
 from mapping.gaussian_grid import initial_hyperparameters  # noqa: E402
 from mapping.gpom import ClassicGPOM  # noqa: E402
 from mapping.grid import GridGeometry  # noqa: E402
 from mapping.logodds import LogOddsGrid  # noqa: E402
 from mapping.roc import map_roc  # noqa: E402
 from mapping.submaps import SubmapFuser  # noqa: E402
-from registration.geometry import matrix_to_xytheta, xytheta_to_matrix  # noqa: E402
 
 STDR = REPO.parent / "shared" / "data" / "stdr_maps"
 PAPER_AUC = {"sparse_obstacles.kuanghaofei_fork": 0.93, "simple_rooms": 0.93, "robocup": 0.87}
@@ -229,7 +229,7 @@ def figure(path: Path, name: str, world, slog, fast_map) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from registration.atomic import atomic_open
+    from core.atomic import atomic_open
 
     ext = world.extent
     gt = world.classes().astype(float)
@@ -347,7 +347,7 @@ def main() -> None:
     result["total_s"] = time.perf_counter() - t_all
     text = json.dumps(result, indent=2)
     if args.out:
-        from registration.atomic import atomic_open
+        from core.atomic import atomic_open
 
         with atomic_open(args.out) as fh:
             fh.write(text + "\n")

@@ -41,7 +41,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from registration.errors import GpslamError  # noqa: E402
+from core.errors import GpslamError  # noqa: E402
 
 INTEL = REPO / "data" / "intel.clf.bz2"
 INTEL_REL = REPO / "data" / "intel.relations"
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = json.dumps(result, indent=2, allow_nan=False)
     if args.out is not None:
-        from registration.atomic import atomic_open
+        from core.atomic import atomic_open
 
         with atomic_open(args.out) as fh:
             fh.write(text + "\n")

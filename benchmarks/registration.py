@@ -50,7 +50,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from registration import geometry as geo  # noqa: E402
+from core import geometry as geo  # noqa: E402
 from registration.config import IcpConfig, KissOdometryConfig  # noqa: E402
 from registration.icp import icp  # noqa: E402
 from registration.point_to_plane import icp_point_to_plane  # noqa: E402
@@ -813,7 +813,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     text = json.dumps(result, indent=1, default=float)
     if args.out is not None:
-        from registration.atomic import atomic_open
+        from core.atomic import atomic_open
 
         with atomic_open(args.out) as fh:
             fh.write(text + "\n")

@@ -37,8 +37,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from core import geometry as G  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
-from registration import geometry as G  # noqa: E402
 from slam.backends.gtsam_backend import optimize  # noqa: E402
 from slam.graph import read_graph  # noqa: E402
 from slam.graph.posegraph import KINDS, PoseGraph, RobustKernel  # noqa: E402

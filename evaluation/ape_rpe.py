@@ -20,8 +20,8 @@ from enum import Enum
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as geo
-from registration.errors import ConfigError
+from core import geometry as geo
+from core.errors import ConfigError
 from slam.trajectory_io import Trajectory
 
 from .trajectory import AlignMode, Alignment, align_trajectory, associate

@@ -26,7 +26,7 @@ import os
 from pathlib import Path
 from typing import Any, Sequence
 
-from registration.atomic import atomic_open
+from core.atomic import atomic_open
 
 __all__ = ["RESULT_KEYS", "columns", "flat_rows", "markdown_table", "write_results"]
 

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as geo
-from registration.errors import GeometryError, GraphFormatError
+from core import geometry as geo
+from core.errors import GeometryError, GraphFormatError
 
 from .trajectory import umeyama
 

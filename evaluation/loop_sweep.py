@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterable, Sequence, TypeVar
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-from registration.errors import ConfigError
+from core.errors import ConfigError
 from slam.pipeline.config import LoopConfig, SlamConfig
 
 from .loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, score_against_truth, score_loops
@@ -340,7 +340,7 @@ def write_sweep(out_dir, result: SweepResult, extra_meta: dict | None = None) ->
     import csv
     import json
 
-    from registration.atomic import atomic_directory
+    from core.atomic import atomic_directory
 
     from .plots import sweep_png
 

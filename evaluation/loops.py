@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from registration import geometry as geo
+from core import geometry as geo
 
 Array = NDArray[np.float64]
 

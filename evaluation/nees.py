@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as G
+from core import geometry as G
 
 Array = NDArray[np.float64]
 

@@ -30,9 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from registration import geometry as geo
-from registration.errors import GpslamError
-from registration.frame import Frame
+from core import geometry as geo
+from core.errors import GpslamError
+from core.frame import Frame
 from slam.trajectory_io import Trajectory
 
 Array = NDArray[np.float64]

@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as geo
-from registration.errors import LogFormatError
-from registration.numbers import c_floats
-from registration.textfile import text_lines
+from core import geometry as geo
+from core.errors import LogFormatError
+from core.numbers import c_floats
+from core.textfile import text_lines
 from slam.trajectory_io import Trajectory
 
 from .trajectory import nearest_indices

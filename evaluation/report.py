@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as geo
-from registration.atomic import atomic_open
-from registration.errors import GpslamError, InputFileError, MapFormatError
+from core import geometry as geo
+from core.atomic import atomic_open
+from core.errors import GpslamError, InputFileError, MapFormatError
 
 Array = NDArray[np.float64]
 

@@ -18,7 +18,7 @@ from enum import Enum
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.errors import DegenerateInputError, GpslamError
+from core.errors import DegenerateInputError, GpslamError
 from slam.trajectory_io import Trajectory
 
 Array = NDArray[np.float64]

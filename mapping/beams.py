@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.errors import GeometryError
-from registration.frame import Frame
+from core.errors import GeometryError
+from core.frame import Frame
 
 Array = NDArray[np.float64]
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.frame import Frame
-from registration.geometry import inverse
+from core.frame import Frame
+from core.geometry import inverse
 
 from .beams import BeamSamples, beam_samples
 from .blockgp import block_gp_predict

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from scipy.linalg import cho_solve, cholesky, solve_triangular
 from scipy.spatial.distance import cdist
 
-from registration.errors import ConfigError, DegenerateInputError
+from core.errors import ConfigError, DegenerateInputError
 
 Array = NDArray[np.float64]
 

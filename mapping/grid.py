@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.errors import ConfigError
+from core.errors import ConfigError
 
 Array = NDArray[np.float64]
 

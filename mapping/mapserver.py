@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.atomic import atomic_path
-from registration.errors import MapFormatError
+from core.atomic import atomic_path
+from core.errors import MapFormatError
 
 __all__ = ["MapServerMap", "read_map_server", "write_map_server", "classes_from_probability",
            "UNKNOWN", "FREE", "OCCUPIED"]

@@ -1,6 +1,6 @@
 """The map container (μ, σ², p on a world grid) and its export / import.
 
-Files written by :func:`export_map` (all through ``registration.atomic``):
+Files written by :func:`export_map` (all through ``core.atomic``):
 ``map.pgm`` + ``map.yaml`` (ROS map_server, via :mod:`mapping.mapserver`), ``map.png`` (probability
 with a colour bar), ``variance.png`` (GP maps only), ``map.npz`` (every array + geometry, the input
 of ``slam eval map``). :func:`write_occupancy_grid` adds a ``nav_msgs/OccupancyGrid`` to an MCAP writer.
@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.atomic import atomic_path
-from registration.errors import MapFormatError
+from core.atomic import atomic_path
+from core.errors import MapFormatError
 
 from .grid import GridGeometry
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.errors import DegenerateInputError
+from core.errors import DegenerateInputError
 
 Array = NDArray[np.float64]
 

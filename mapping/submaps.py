@@ -16,8 +16,8 @@ from typing import Hashable, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.frame import Frame
-from registration.geometry import inverse, matrix_to_xytheta, relative, wrap_angle
+from core.frame import Frame
+from core.geometry import inverse, matrix_to_xytheta, relative, wrap_angle
 
 from .bcm import mean_variance, probit_squash
 from .config import MappingConfig

@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import DegenerateInputError
-from .geometry import quat_to_rotation
+from core.errors import DegenerateInputError
+from core.geometry import quat_to_rotation
 
 Array = NDArray[np.float64]
 

@@ -12,10 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from core.errors import DegenerateInputError, GeometryError
+
 from .config import IcpConfig
 from .covariance import (Chi2Verdict, chi2_test, covariance_from_information, fisher_information,
                          jacobian_plane, jacobian_point)
-from .errors import DegenerateInputError, GeometryError
 from .matching import pair_distances
 from .target import IcpTarget, gated_nearest
 from .voxel import voxel_downsample

@@ -1,4 +1,4 @@
-"""Typed configuration of ICP and odometry (pydantic models, loadable from and dumpable to YAML).
+"""Typed configuration of ICP and odometry (pydantic models; YAML through :mod:`core.yaml_config`).
 
 Distances are metres, angles radians. The models are frozen so a config cannot change under a
 running estimator; use ``model_copy(update=...)`` to derive variants.
@@ -6,14 +6,11 @@ running estimator; use ``model_copy(update=...)`` to derive variants.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from .errors import ConfigError
-
-__all__ = ["IcpConfig", "KissOdometryConfig", "IcpOdometryConfig", "load_yaml", "dump_yaml"]
+__all__ = ["IcpConfig", "KissOdometryConfig", "IcpOdometryConfig"]
 
 
 class _Frozen(BaseModel):
@@ -178,25 +175,3 @@ class IcpOdometryConfig(_Frozen):
     #: twice the distance and every heading, around the guess and around the last pose; its result is
     #: kept when it scores better by the same factor. None = never.
     unguided_escalation: float | None = Field(0.8, gt=0.0, le=1.0)
-
-
-def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:
-    """Load a config model from a YAML file (raises ConfigError naming the file)."""
-    import yaml
-
-    try:
-        with open(path) as fh:
-            data = yaml.safe_load(fh) or {}
-        return model.model_validate(data)
-    except (OSError, yaml.YAMLError, ValueError) as exc:
-        raise ConfigError(f"{path}: {exc}") from exc
-
-
-def dump_yaml(config: BaseModel, path: str | Path) -> None:
-    """Write a config model as YAML, atomically."""
-    import yaml
-
-    from .atomic import atomic_open
-
-    with atomic_open(path) as fh:
-        yaml.safe_dump(config.model_dump(mode="json"), fh, sort_keys=False)

@@ -19,9 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from . import geometry as G
+from core import geometry as G
+from core.errors import DegenerateInputError
+
 from . import kernels  # compiled loops: the per-point gathers are the search's whole cost
-from .errors import DegenerateInputError
 
 Array = NDArray[np.float64]
 

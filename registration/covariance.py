@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import DegenerateInputError
+from core.errors import DegenerateInputError
 
 Array = NDArray[np.float64]
 

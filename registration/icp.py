@@ -17,10 +17,11 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from core.errors import DegenerateInputError
+
 from . import alignment
 from .alignment import IcpResult, as_target, evaluate_matches, prepare, robust_weights
 from .config import IcpConfig
-from .errors import DegenerateInputError
 from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher, pair_distances
 from .target import IcpTarget
 

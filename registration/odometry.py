@@ -1,6 +1,6 @@
 """Scan odometry with one interface for two sources: KISS-ICP and our scan-to-local-map SVD-ICP.
 
-Feed :class:`~registration.frame.Frame` objects in time order to ``update``; each call returns an
+Feed :class:`~core.frame.Frame` objects in time order to ``update``; each call returns an
 :class:`OdometryStep` with ``world_T_sensor`` (4×4; *world* is the sensor frame of the first scan),
 the relative pose ``prev_T_curr`` of this scan in the previous one, and its covariance in the
 project tangent convention (``prev_T_curr_true = prev_T_curr · Exp(δ)``, translation first; 3×3
@@ -29,11 +29,12 @@ from typing import Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from . import geometry as geo
+from core import geometry as geo
+from core.errors import DegenerateInputError, GeometryError
+from core.frame import Frame
+
 from .alignment import evaluate_alignment
 from .config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
-from .errors import DegenerateInputError, GeometryError
-from .frame import Frame
 from .icp import icp
 from .point_to_plane import PosePrior, icp_point_to_plane
 from .target import IcpTarget

@@ -14,12 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from core import geometry as geo
+from core.errors import DegenerateInputError
+from core.geometry import se3_exp
+
 from . import alignment
-from . import geometry as geo
 from .alignment import IcpResult, as_target, evaluate_matches, prepare, robust_weights
 from .config import IcpConfig
-from .errors import DegenerateInputError
-from .geometry import se3_exp
 from .matching import INCREMENTAL_MIN_POINTS, IncrementalMatcher
 from .target import IcpTarget, gated_nearest
 
@@ -155,7 +156,7 @@ def _plane_rows(m: Array, n: Array) -> Array:
 
 
 def _apply_se2_left(xi: Array, R: Array, t: Array) -> tuple[Array, Array]:
-    """``Exp(ξ) · (R, t)`` for ξ = (ρx, ρy, θ) — :func:`registration.geometry.se2_exp` in scalar form
+    """``Exp(ξ) · (R, t)`` for ξ = (ρx, ρy, θ) — :func:`core.geometry.se2_exp` in scalar form
     (this runs once per ICP iteration, where numpy's per-call overhead would dominate)."""
     rx, ry, th = float(xi[0]), float(xi[1]), float(xi[2])
     c, s = math.cos(th), math.sin(th)

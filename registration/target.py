@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from .errors import DegenerateInputError, GeometryError
+from core.errors import DegenerateInputError, GeometryError
 from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]

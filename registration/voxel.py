@@ -11,7 +11,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import GeometryError
+from core.errors import GeometryError
 
 Array = NDArray[np.float64]
 

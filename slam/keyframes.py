@@ -14,8 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, Field
 
-from registration import geometry as G
-from registration.frame import Frame
+from core import geometry as G
+from core.frame import Frame
 
 
 @dataclass

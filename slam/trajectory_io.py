@@ -27,11 +27,11 @@ from typing import Iterable, Iterator
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as geo
-from registration.atomic import atomic_open
-from registration.errors import GeometryError, LogFormatError
-from registration.numbers import c_floats, c_int
-from registration.textfile import text_lines
+from core import geometry as geo
+from core.atomic import atomic_open
+from core.errors import GeometryError, LogFormatError
+from core.numbers import c_floats, c_int
+from core.textfile import text_lines
 
 Array = NDArray[np.float64]
 PathLike = str | os.PathLike[str]

@@ -167,7 +167,7 @@ def _tum_text(n: int, rng: np.random.Generator) -> str:
 def seeds(workdir: Path) -> dict[str, list[Seed]]:
     """The seed files of every format (deterministic; MCAP and bags in each chunk compression), some written
     into *workdir* as fixed companions."""
-    from registration import geometry as geo
+    from core import geometry as geo
     from slam.graph import PoseGraph, write_g2o, write_toro
     from tests.test_logs_carmen import synthetic_log
     from tests.test_logs_mcap import write_basic_log

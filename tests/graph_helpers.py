@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.graph import PoseGraph
 
 

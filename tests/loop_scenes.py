@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from core import geometry as G
+from core.frame import Frame
 from evaluation.sim import LaserSpec, World, cast_rays
-from registration import geometry as G
-from registration.frame import Frame
 from registration.voxel import voxel_downsample
 from slam.keyframes import Keyframe
 

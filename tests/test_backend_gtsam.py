@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.backends.chordal import solve_chordal
 from slam.backends.gtsam_backend import IncrementalSmoother, optimize
 from slam.graph import PoseGraph, RobustKernel, read_g2o

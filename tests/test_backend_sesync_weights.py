@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pytest
 
-from registration.errors import GpslamError, GraphFormatError
+from core.errors import GpslamError, GraphFormatError
 from slam.backends.chordal import solve_chordal
 from slam.backends.gtsam_backend import optimize
 from slam.cli import main

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core import geometry as G
 from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
-from registration import geometry as G
 from slam.cli import main
 from tests.conftest import DATA, REPO
 from tests.test_logs_skip import rewrite_mcap
@@ -482,7 +482,7 @@ def _die_on(i: int, bad: int) -> int:
 
 
 def _raise_on(i: int, bad: int) -> int:
-    from registration.errors import ConfigError
+    from core.errors import ConfigError
 
     if i == bad:
         raise ConfigError(f"item {i} is bad")
@@ -494,7 +494,7 @@ def test_executor_reports_a_dead_worker_and_reraises_a_task_error(ray_cluster):
     failures="raise" the task's own exception comes back here, as the sequential call would raise it."""
     import cloudpickle
 
-    from registration.errors import ConfigError
+    from core.errors import ConfigError
     from slam.batch.executor import RayExecutor, TaskFailure
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import tests/

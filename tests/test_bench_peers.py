@@ -15,10 +15,10 @@ import sys
 import numpy as np
 import pytest
 
+from core import geometry as geo
 from evaluation import peers
 from evaluation.published import PUBLISHED
 from evaluation.relations import evaluate_relations, read_relations
-from registration import geometry as geo
 from slam.logs import open_log
 from slam.trajectory_io import Trajectory
 from tests.conftest import DATA, REPO

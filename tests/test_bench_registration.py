@@ -14,7 +14,7 @@ import sys
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 from tests.conftest import REPO
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.graph import PoseGraph, write_g2o
 from slam.trajectory_io import Trajectory, write_tum
 from tests.cli_helpers import corridor_log, one_error_line

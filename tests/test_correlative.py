@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from core import geometry as G
+from core.errors import DegenerateInputError
 from registration import correlative as C
-from registration import geometry as G
-from registration.errors import DegenerateInputError
 
 
 def room(rng: np.random.Generator, n: int = 1200) -> np.ndarray:

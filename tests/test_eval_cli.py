@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.trajectory_io import Trajectory, write_tum
 
 SLAM = str(Path(sys.executable).parent / "slam")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 
 pytest.importorskip("slam.graph")
 from slam.graph import PoseGraph, write_g2o  # noqa: E402

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 
 pytest.importorskip("slam.graph")
 from slam.graph import PoseGraph, read_g2o, write_g2o  # noqa: E402

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration import geometry as geo
-from slam.trajectory_io import Trajectory, write_tum
+from core import geometry as geo
 from evaluation.report import flatten_metrics, resample_classes
+from slam.trajectory_io import Trajectory, write_tum
 
 RES = 0.1
 GT_ORIGIN = np.array([-2.0, -2.0, 0.0])

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.atomic import atomic_directory, atomic_open, atomic_path
-from registration.errors import GeometryError
-from registration.frame import Frame
+from core.atomic import atomic_directory, atomic_open, atomic_path
+from core.errors import GeometryError
+from core.frame import Frame
 
 
 def test_frame_beams_and_free_endpoints():
@@ -100,7 +100,7 @@ def test_ctrl_c_while_moving_in_is_held_until_every_file_is_there(tmp_path, monk
     import os
     import signal
 
-    import registration.atomic as atomic
+    import core.atomic as atomic
 
     out = tmp_path / "run"
     with atomic_directory(out) as d:
@@ -129,7 +129,7 @@ def test_new_folder_appears_in_one_step(tmp_path, monkeypatch):
     """A folder that did not exist is the temporary folder renamed (no file-by-file move)."""
     import os
 
-    import registration.atomic as atomic
+    import core.atomic as atomic
 
     moved = []
     monkeypatch.setattr(atomic.os, "replace", lambda s, d: moved.append(d) or os.rename(s, d))

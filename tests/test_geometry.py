@@ -1,4 +1,4 @@
-"""Property tests of registration.geometry: round trips, group laws, agreement with GTSAM."""
+"""Property tests of core.geometry: round trips, group laws, agreement with GTSAM."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from registration import geometry as G
-from registration.errors import GeometryError
+from core import geometry as G
+from core.errors import GeometryError
 
 finite = st.floats(-50.0, 50.0, allow_nan=False)
 angle = st.floats(-np.pi, np.pi, allow_nan=False, exclude_max=True)

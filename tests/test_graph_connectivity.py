@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.graph import PoseGraph, read_g2o, write_g2o
 from tests.cli_helpers import slam
 from tests.graph_helpers import synthetic_graph

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.graph import PoseGraph
 from slam.graph.costs import chordal_weights, gtsam_error, sesync_objective
 from tests.graph_helpers import synthetic_graph

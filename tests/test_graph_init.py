@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
-from registration.errors import GpslamError
+from core import geometry as geo
+from core.errors import GpslamError
 from slam.graph import PoseGraph, read_g2o
 from slam.graph.costs import sesync_objective
 from slam.graph.init import chordal_initialisation, initial_poses, odometry_initialisation

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
-from registration.errors import GraphFormatError
+from core import geometry as geo
+from core.errors import GraphFormatError
 from slam.graph import PRIOR_NODE, PoseGraph, RobustKernel, read_g2o, read_graph, read_toro, write_g2o, write_toro
 from tests.conftest import shared_path
 from tests.graph_helpers import synthetic_graph

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from registration import geometry as G
+from core import geometry as G
 from slam.keyframes import KeyframeConfig, KeyframeSelector
 
 

@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
+from core.frame import Frame
 from evaluation.relations import read_relations
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
-from registration.frame import Frame
 from slam.logs import open_log
 from slam.logs.carmen import DEFAULT_FLASER_MAX_RANGE, CarmenReader, detect_saturation, parse_laser_line
 from tests.conftest import DATA, shared_path

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import open_log
 from slam.logs.kitti import KittiReader, read_velodyne_bin
 from tests.conftest import shared_path

@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import open_log
 from slam.logs.mcap_reader import McapReader
 from slam.logs.mcap_writer import McapLogWriter, write_cloud_log
@@ -606,7 +606,7 @@ def test_writer_failure_leaves_no_file(tmp_path):
 
 def _clouds(rng, n=4, mount=None):
     """3D frames with float32-valued points, odometry, ground truth and a sensor mount, 10 Hz."""
-    from registration.frame import Frame
+    from core.frame import Frame
 
     mount = random_pose(rng) if mount is None else mount
     return [Frame(stamp=1.7e9 + 0.1 * k, points=rng.normal(size=(200, 3)).astype(np.float32), index=k,
@@ -630,8 +630,8 @@ def test_cloud_log_reads_back_as_the_frames(tmp_path, rng):
 def test_cloud_log_refuses_what_it_cannot_carry(tmp_path, rng):
     """A planar scan, or a sensor mount that moves between frames, is a GeometryError naming the frame,
     and no file is left."""
-    from registration.errors import GeometryError
-    from registration.frame import Frame
+    from core.errors import GeometryError
+    from core.frame import Frame
 
     p = tmp_path / "bad.mcap"
     with pytest.raises(GeometryError, match="frame 0 is a planar scan"):

@@ -12,8 +12,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from registration import geometry as geo
-from registration.errors import LogFormatError
+from core import geometry as geo
+from core.errors import LogFormatError
 from slam.logs import mcap_chunks
 from slam.logs.mcap_reader import McapReader
 from slam.logs.mcap_writer import McapLogWriter

@@ -7,8 +7,8 @@ import itertools
 import numpy as np
 import pytest
 
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import open_log
 from slam.logs.rosbag1 import Ros1BagReader
 from tests.conftest import shared_path

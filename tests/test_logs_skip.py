@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration.errors import LogFormatError
+from core.errors import LogFormatError
 from slam.logs import SkipLog, open_log
 from slam.logs.carmen import CarmenReader
 from slam.logs.ros_msgs import stamp_to_ns

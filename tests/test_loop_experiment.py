@@ -15,10 +15,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from core import geometry as G
+from core.errors import ConfigError
 from evaluation.loop_sweep import COLUMNS_SELF, parse_sweep, sweep_grid, sweep_recorded
 from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
-from registration import geometry as G
-from registration.errors import ConfigError
 from slam.cli import main
 from slam.logs import open_log
 from slam.pipeline.config import LoopConfig, SlamConfig

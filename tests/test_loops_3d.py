@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from registration import geometry as G
+from core import geometry as G
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.frontend import OdometryEdge
 from slam.pipeline.loop_replay import FrontEndRecord, LoopReplay, record_front_end, replay_loops

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as G
+from core import geometry as G
 from slam.loops.descriptor import (
     SCAN_CONTEXT_3D,
     DescriptorIndex,

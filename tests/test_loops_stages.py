@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from registration import geometry as G
+from core import geometry as G
 from slam.loops import candidates as C
 from slam.loops.accept import Acceptance, mahalanobis2, to_closure
 from slam.loops.config import LoopConfig

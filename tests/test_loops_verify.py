@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core import geometry as G
 from registration import correlative
-from registration import geometry as G
 from slam.loops.config import LoopConfig
 from slam.loops.local_map import LocalMaps
 from slam.loops.types import Candidate, Rejection, Source, Verified, Window

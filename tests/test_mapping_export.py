@@ -54,7 +54,7 @@ def test_npz_round_trip_and_images(tmp_path, rng):
 
 def test_bad_npz_names_file_and_key(tmp_path):
     """A map.npz without 'probability' raises MapFormatError naming the file and the key."""
-    from registration.errors import MapFormatError
+    from core.errors import MapFormatError
 
     p = tmp_path / "bad.npz"
     np.savez(p, observed=np.ones((2, 2), bool))

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.frame import Frame
+from core.geometry import xytheta_to_matrix
 from mapping.beams import beam_samples
 from mapping.config import MappingConfig
 from mapping.fastgpom import FastGPOM, fan_regions
 from mapping.gp import GPHyperparameters
 from mapping.gpom import ClassicGPOM
 from mapping.grid import GridGeometry
-from registration.frame import Frame
-from registration.geometry import xytheta_to_matrix
 
 
 @pytest.fixture(autouse=True)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.frame import Frame
+from core.geometry import xytheta_to_matrix
 from mapping.config import MappingConfig
 from mapping.grid import GridGeometry
 from mapping.logodds import LogOddsGrid
-from registration.frame import Frame
-from registration.geometry import xytheta_to_matrix
 from tests.test_mapping_fastgpom import box_world, cast
 
 

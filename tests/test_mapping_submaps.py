@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.geometry import xytheta_to_matrix
 from mapping.fastgpom import FastGPOM
 from mapping.submaps import SubmapFuser
-from registration.geometry import xytheta_to_matrix
 from tests.test_mapping_fastgpom import HYP, box_world, cast
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from core.errors import MapFormatError
 from mapping.mapserver import classes_from_probability, read_map_server, write_map_server
-from registration.errors import MapFormatError
 from tests.conftest import shared_path
 
 

@@ -8,7 +8,7 @@ import gzip
 import numpy as np
 import pytest
 
-from registration.errors import LogFormatError, TopicNotFoundError
+from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import LogReader, detect_format, open_log
 from slam.logs.carmen import CarmenReader
 from slam.logs.kitti import KittiReader

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from registration.atomic import atomic_directory, atomic_open, check_output_dir, check_output_file
-from registration.errors import OutputError
+from core.atomic import atomic_directory, atomic_open, check_output_dir, check_output_file
+from core.errors import OutputError
 from tests.cli_helpers import corridor_log
 from tests.cli_helpers import one_error_line as _one_error
 from tests.cli_helpers import slam as _slam
@@ -132,7 +132,7 @@ def test_atomic_open_turns_a_write_failure_into_an_output_error(tmp_path):
 def test_a_rerun_replaces_the_whole_folder(tmp_path, monkeypatch, exchange):
     """The second output into the same folder replaces the first entirely: no file of the first survives
     (by the atomic exchange of renameat2, and by two renames where the system lacks it)."""
-    import registration.atomic as atomic
+    import core.atomic as atomic
 
     if not exchange:
         monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as G
+from core import geometry as G
+from slam.loops import LoopClosure
 from slam.pipeline.backend import PipelineBackend
 from slam.pipeline.config import BackendConfig, LoopConfig
-from slam.loops import LoopClosure
 
 
 ODO_COV = np.diag([0.02**2, 0.02**2, 0.005**2])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from registration.errors import ConfigError
+from core.errors import ConfigError
 from registration.odometry import IcpOdometry, KissOdometry
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.odometry_source import make_odometry

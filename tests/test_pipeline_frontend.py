@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from registration import geometry as G
+from core import geometry as G
+from slam.noise_scale import NoiseScaleCalibration
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.frontend import FrontEnd, OdometryEdge
-from slam.noise_scale import NoiseScaleCalibration
 
 
 def _front(probability: float | None = 0.999) -> FrontEnd:
@@ -203,7 +203,7 @@ def test_an_edge_in_a_corridor_without_a_wheel_edge_is_uncertain_along_it(mount_
     along the corridor, at about the uniform spread's (1 m)²/3 (the mounting turns the sensor's corridor axis
     into the base's), and stays the registration's across it. With smooth wheels the wheel edge stays, bounds
     the slide, and the registration edge keeps its own covariance."""
-    from registration.frame import Frame
+    from core.frame import Frame
     rng = np.random.default_rng(5)
 
     def walls(n: int = 3000) -> np.ndarray:  # along the sensor's x at keyframe 0, 2 cm apart on each wall

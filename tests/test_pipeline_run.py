@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from core import geometry as G
 from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
-from registration import geometry as G
 from slam.cli import main
 from slam.logs import open_log
 from slam.pipeline.config import SlamConfig

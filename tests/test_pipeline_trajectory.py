@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from registration import geometry as G
+from core import geometry as G
 from slam.pipeline.trajectory import interpolate_scan_poses
 
 
@@ -41,7 +41,7 @@ def test_keyframes_keep_their_optimised_pose_and_corrections_blend():
 
 def test_cap_range_turns_far_beams_into_free_space():
     """Beams beyond the cap become no-return beams of the cap's length; nearer hits are unchanged."""
-    from registration.frame import Frame
+    from core.frame import Frame
     from slam.pipeline.mapping_stage import cap_range
 
     ang = np.linspace(-1.0, 1.0, 5)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as G
+from core import geometry as G
 from slam.loops.uncertainty import RelativeUncertainty
 
 

@@ -7,7 +7,7 @@ import struct
 import numpy as np
 import pytest
 
-from registration.errors import LogFormatError
+from core.errors import LogFormatError
 from slam.logs.mcap_reader import McapReader
 from slam.logs.mcap_writer import McapLogWriter
 from slam.logs.ros_msgs import POINTCLOUD2, POINTFIELD_TYPES, decode_pointcloud2, humble_typestore

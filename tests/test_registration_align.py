@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
+from core.errors import DegenerateInputError, GpslamError
 from registration.align import align_horn, align_svd
-from registration.errors import DegenerateInputError, GpslamError
 
 
 def _apply(T, P):

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig, dump_yaml, load_yaml
-from registration.errors import ConfigError
+from core.errors import ConfigError
+from core.yaml_config import dump_yaml, load_yaml
+from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
 
 
 @pytest.mark.parametrize("model", [IcpConfig(gates=(2.0, 0.5), robust="huber", sigma=0.02),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
 from registration.config import IcpConfig
 from registration.covariance import chi2_test, jacobian_plane, jacobian_point
 from registration.icp import icp

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from registration import geometry as geo
+from core import geometry as geo
+from core.errors import DegenerateInputError, GeometryError
 from registration.config import IcpConfig
-from registration.errors import DegenerateInputError, GeometryError
 from registration.icp import icp
 from registration.point_to_plane import icp_point_to_plane
 from registration.target import IcpTarget, estimate_normals
@@ -229,7 +229,7 @@ def test_prior_holds_the_pose_along_a_featureless_corridor():
     """Two parallel walls say nothing about motion along them: without a prior the normal equations are
     singular (or the pose slides), with one the along-corridor coordinate is the prior's while the
     across-corridor offset and the heading come from the walls."""
-    from registration.errors import DegenerateInputError
+    from core.errors import DegenerateInputError
     from registration.point_to_plane import PosePrior
 
     x = np.arange(-10.0, 10.0, 0.05)

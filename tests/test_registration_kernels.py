@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from core import geometry as geo
+from core.errors import DegenerateInputError
 from registration import alignment, kernels
-from registration import geometry as geo
 from registration.config import IcpConfig
 from registration.correlative import LikelihoodPyramid
-from registration.errors import DegenerateInputError
 from registration.point_to_plane import icp_point_to_plane
 from registration.target import IcpTarget, estimate_normals, gated_nearest
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from registration import geometry as geo
+from core import geometry as geo
 from registration import icp as icp_module
 from registration.config import IcpConfig
 from registration.matching import IncrementalMatcher, pair_distances

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
+from core import geometry as geo
+from core.frame import Frame
 from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
-from registration.frame import Frame
 from registration.odometry import IcpOdometry, KissOdometry, OdometryStep, wheel_increment
 from tests.conftest import DATA, shared_path
 

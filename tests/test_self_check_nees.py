@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core import geometry as G
 from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps, heading_by_path
-from registration import geometry as G
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, self_check
 

@@ -9,13 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from core import geometry as geo
 from evaluation.sim import LASER_PRESETS, load_world
 from evaluation.sim.coverage import (_look, _order, _two_opt, coverage_tour, plan_space, scan_coverage,
                                      unreachable_space)
 from evaluation.sim.path import clearance_map, sample_motion
 from evaluation.sim.visibility import seen_cells, visible_targets
 from evaluation.sim.world import World
-from registration import geometry as geo
 from tests.cli_helpers import slam
 
 SPEC = LASER_PRESETS["fastgpom"]

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from core.errors import GeometryError
 from evaluation.sim import LASER_PRESETS, LaserSpec, World, cast_rays, load_world, raycast_distances
-from registration.errors import GeometryError
 
 
 def _empty_world(w=200, h=120, res=0.05):

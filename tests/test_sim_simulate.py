@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from core import geometry as geo
 from evaluation.sim import LASER_PRESETS, load_world
 from evaluation.sim.simulate import map_paths, odometry_from_ground_truth, simulate, write_simulated_log
 from mapping.mapserver import read_map_server
-from registration import geometry as geo
 from tests.conftest import REPO
 
 SPEC = LASER_PRESETS["fastgpom"]

@@ -9,9 +9,9 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from core.errors import ConfigError
 from evaluation.sim import LASER_PRESETS, load_world
 from evaluation.sim.path import plan_path
-from registration.errors import ConfigError
 from tests.conftest import shared_path
 
 SPEC = LASER_PRESETS["fastgpom"]

@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from registration.errors import LogFormatError
+from core.errors import LogFormatError
 from slam.logs import SkipLog, open_log
 from tests.cli_helpers import slam as _slam
 from tests.test_logs_carmen import flaser, odom_line, write_log

@@ -8,9 +8,9 @@ import multiprocessing as mp
 import numpy as np
 import pytest
 
+from core.errors import GpslamError
+from core.frame import Frame
 from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
-from registration.errors import GpslamError
-from registration.frame import Frame
 from slam.logs import open_log
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.front_process import FrontEndProcess

@@ -9,13 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from core.errors import GraphFormatError, InputFileError, LogFormatError
+from core.numbers import c_float, c_int
 from evaluation.relations import read_relations
-from registration.errors import GraphFormatError, InputFileError, LogFormatError
-from registration.numbers import c_float, c_int
 from slam.graph import read_g2o, read_graph, read_toro
 from slam.trajectory_io import read_g2o_vertices, read_kitti, read_trajectory, read_tum
 
-# The decimal strtod grammar of the C locale, written out independently of registration.numbers.
+# The decimal strtod grammar of the C locale, written out independently of core.numbers.
 C_FLOAT = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)", re.I)
 C_INT = re.compile(r"[+-]?[0-9]+")
 

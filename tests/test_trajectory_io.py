@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import geometry as geo
-from registration.errors import LogFormatError
+from core import geometry as geo
+from core.errors import LogFormatError
 import slam.trajectory_io as tio
 from slam.trajectory_io import Trajectory, read_g2o_vertices, read_kitti, read_trajectory, read_tum, write_kitti, write_tum
 

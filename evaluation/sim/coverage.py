@@ -34,9 +34,9 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.sparse.csgraph import dijkstra
 
+from core import geometry as geo
+from core.errors import ConfigError
 from mapping.roc import free_space
-from registration import geometry as geo
-from registration.errors import ConfigError
 
 from .path import Roadmap, clearance_map, main_component, pick_start, sample_motion, string_pull
 from .sensors import LaserSpec

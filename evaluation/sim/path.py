@@ -27,7 +27,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
-from registration.errors import ConfigError
+from core.errors import ConfigError
 
 from .sensors import LaserSpec
 from .world import World

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.errors import GeometryError
+from core.errors import GeometryError
 
 from .sensors import LaserSpec
 from .world import World

@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING, Iterator, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
-from registration.errors import ConfigError
-from registration.frame import Frame
+from core import geometry as geo
+from core.errors import ConfigError
+from core.frame import Frame
 
 from .path import plan_path
 from .raycast import cast_rays

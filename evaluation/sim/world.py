@@ -91,7 +91,7 @@ def world_from_map_server(yaml_path: str | Path, resolution: float | None = None
     A map with a non-zero origin yaw is rejected (cells would not be axis-aligned). With
     *resolution* the grid is resampled by nearest cell centre (exact for integer up-sampling).
     """
-    from registration.errors import MapFormatError
+    from core.errors import MapFormatError
 
     m = read_map_server(yaml_path)
     if abs(m.origin[2]) > 1e-12:
@@ -318,13 +318,13 @@ def load_world(name_or_yaml: str | Path, resolution: float | None = None, seed: 
     if name in _BUILDERS:
         res = 0.05 if resolution is None else float(resolution)
         if not (0.005 <= res <= 0.25):
-            from registration.errors import ConfigError
+            from core.errors import ConfigError
 
             raise ConfigError(f"world resolution must be within [0.005, 0.25] m, got {res}")
         return _BUILDERS[name](res, np.random.default_rng(seed))
     path = Path(name)
     if not path.exists():
-        from registration.errors import ConfigError
+        from core.errors import ConfigError
 
         raise ConfigError(f"unknown world {name!r}: not one of {PROCEDURAL_WORLDS} and no such map yaml file")
     return world_from_map_server(path, resolution)

@@ -37,7 +37,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.graph.costs import chordal_weights
 from slam.graph.posegraph import GraphError, PoseGraph
 

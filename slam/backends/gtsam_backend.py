@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
+from core import geometry as geo
 from slam.graph.posegraph import PRIOR_NODE, GraphError, PoseGraph, RobustKernel
 
 Array = NDArray[np.float64]

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from registration.errors import GpslamError
+from core.errors import GpslamError
 
 __all__ = ["spd_solve", "spd_factor", "SOLVERS", "SingularSystemError"]
 

@@ -26,7 +26,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from registration.errors import ConfigError
+from core.errors import ConfigError
 
 __all__ = ["TaskFailure", "RayExecutor"]
 

@@ -23,7 +23,7 @@ A spec is YAML. Relative paths are relative to the spec's folder; log paths may 
 The settings are the explicit ones (default: one that changes nothing) × the sweep grid; the batch is
 every log × every setting, each run evaluated when it has a reference. Config values may be nested
 (``odometry: {max_range: 20}``) or dotted (``odometry.max_range: 20``). Everything is checked before any
-run: a mistake is one :class:`~registration.errors.InputFileError` naming the spec and the entry
+run: a mistake is one :class:`~core.errors.InputFileError` naming the spec and the entry
 (``logs[2].config``).
 """
 
@@ -40,7 +40,7 @@ from typing import Any, Callable
 
 from pydantic import ValidationError
 
-from registration.errors import ConfigError, InputFileError
+from core.errors import ConfigError, InputFileError
 from slam.pipeline.config import LoopConfig, SlamConfig
 
 from .fingerprint import config_sha256, content_sha256

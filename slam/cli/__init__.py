@@ -14,7 +14,7 @@ import warnings
 
 import typer
 
-from registration.errors import GpslamError
+from core.errors import GpslamError
 from slam import __version__
 
 from . import signals

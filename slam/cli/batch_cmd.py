@@ -25,7 +25,7 @@ _SPEC_SUFFIXES = (".yaml", ".yml")
 def _remove_staging(jobs, out: Path, out_existed: bool) -> None:  # type: ignore[no-untyped-def]
     """Delete what runs interrupted while writing left behind: ``.<setting>.*.part`` beside each run folder,
     then the folders the batch created that stayed empty (``runs/<log>/``, ``runs/``, ``--out``)."""
-    from registration.atomic import sigint_deferred
+    from core.atomic import sigint_deferred
 
     with sigint_deferred():
         parents = dict.fromkeys(Path(job.out).parent for job in jobs)
@@ -70,9 +70,9 @@ def batch(
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar, no line per run; only the final table."),
 ) -> None:
     """Run SLAM over many logs × many settings, each run a Ray task; one table and report for them all."""
+    from core.atomic import check_output_file
+    from core.errors import ConfigError
     from evaluation.batch_report import flat_rows, markdown_table, write_results
-    from registration.atomic import check_output_file
-    from registration.errors import ConfigError
     from slam.batch.fingerprint import completed_row
     from slam.batch.spec import load_spec, spec_from_command_line
 

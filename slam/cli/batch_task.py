@@ -25,9 +25,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from core.atomic import sigint_deferred
+from core.errors import GpslamError, InputFileError
 from evaluation.batch_report import RESULT_KEYS
-from registration.atomic import sigint_deferred
-from registration.errors import GpslamError, InputFileError
 from slam.batch.fingerprint import BATCH_FILE
 from slam.batch.spec import Job
 

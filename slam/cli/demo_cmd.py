@@ -21,9 +21,9 @@ def demo(
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Run SLAM on the bundled Intel log and print the relation error beside the published ones."""
+    from core.atomic import check_output_dir
     from evaluation.published import recognise_dataset
     from evaluation.relations import evaluate_relations, read_relations
-    from registration.atomic import check_output_dir
     from slam.cli.eval_cmd import relations_table
     from slam.cli.run_cmd import load_config, run_log
     from slam.pipeline.outputs import RUN_MARKER

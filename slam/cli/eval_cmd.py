@@ -61,7 +61,7 @@ def _echo_pairs(pairs: dict[str, Any]) -> None:
 def _check_json(path: Path | None) -> None:
     """Before any work: the --json path can be written."""
     if path is not None:
-        from registration.atomic import check_output_file
+        from core.atomic import check_output_file
 
         check_output_file(path)
 
@@ -69,7 +69,7 @@ def _check_json(path: Path | None) -> None:
 def _save_json(path: Path | None, obj: Any) -> None:
     if path is None:
         return
-    from registration.atomic import atomic_open
+    from core.atomic import atomic_open
 
     with atomic_open(path, "w", encoding="utf-8") as fh:
         json.dump(obj, fh, indent=2, default=float)
@@ -133,7 +133,7 @@ def rpe_cmd(
                        delta_unit=delta_unit.value, relation=relation.value, align=align.value, all_pairs=all_pairs,
                        max_diff=max_diff, pairs_from_reference=pairs_from_reference)
     if not len(res.errors):
-        from registration.errors import InputFileError
+        from core.errors import InputFileError
 
         raise InputFileError(est, None, f"no two of the {res.n_matched} poses associated with {ref} are --delta "
                              f"{fmt_num(d)} {delta_unit.value} apart: nothing to measure (give a smaller --delta)")
@@ -180,7 +180,7 @@ def relations_cmd(
 
     res = evaluate_relations(read_trajectory(traj, traj_format.value, stamps), read_relations(relations), stamp_tol)
     if res.n_used == 0:
-        from registration.errors import InputFileError
+        from core.errors import InputFileError
 
         raise InputFileError(traj, None, f"no relation of {relations} has both stamps in this trajectory (within "
                              f"--stamp-tol {stamp_tol} s): was it written from the same log?")
@@ -204,10 +204,10 @@ def nees_cmd(
     _check_json(json_out)
     import numpy as np
 
+    from core.errors import InputFileError
     from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
     from evaluation.relations import read_relations
     from evaluation.trajectory import nearest_indices
-    from registration.errors import InputFileError
     from slam.graph import read_graph
     from slam.graph.posegraph import KINDS
     from slam.trajectory_io import read_node_stamps, read_trajectory
@@ -263,8 +263,8 @@ def nees_cmd(
 
 def _run_heading_drift(run: Path) -> float:
     """The heading-rate σ (°/m) of the run's own configuration (``config.yaml``), or the default one."""
-    from registration.config import load_yaml
-    from registration.errors import ConfigError
+    from core.errors import ConfigError
+    from core.yaml_config import load_yaml
     from slam.pipeline.config import SlamConfig
 
     try:
@@ -276,8 +276,8 @@ def _run_heading_drift(run: Path) -> float:
 def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:
     """True poses of the graph nodes: by stamp (``--node-stamps`` file of 'id stamp' or one stamp per node)
     or, without it, node id = row of the ground-truth trajectory."""
+    from core.errors import LogFormatError
     from evaluation.trajectory import nearest_indices
-    from registration.errors import LogFormatError
     from slam.trajectory_io import read_node_stamps, read_trajectory
 
     ref = read_trajectory(gt)
@@ -314,13 +314,13 @@ def loops_cmd(
 
     graph = read_graph(graph_path)
     if poses is None and not graph.has_initial_guess:
-        from registration.errors import GraphFormatError
+        from core.errors import GraphFormatError
 
         raise GraphFormatError(graph_path, None, "has no VERTEX pose for every node; give the optimised poses with --poses")
     P = load_solution(poses, graph) if poses is not None else graph.poses
     loops = loop_edges_from_graph(graph)
     if not len(loops):
-        from registration.errors import GraphFormatError
+        from core.errors import GraphFormatError
 
         raise GraphFormatError(graph_path, None, "has no loop closure (no edge tagged kind=loop or between "
                                "non-consecutive nodes): nothing to score")
@@ -331,7 +331,7 @@ def loops_cmd(
         t = score_against_truth(loops, _node_gt_poses(graph, gt, node_stamps, max_diff), revisit_radius, min_separation,
                                 trans_tol, rot_tol)
         if not t.n_revisit_nodes:
-            from registration.errors import InputFileError
+            from core.errors import InputFileError
 
             raise InputFileError(gt, None, f"no node comes back within --revisit-radius {revisit_radius} m of one at "
                                  f"least --min-separation {min_separation} nodes earlier: recall is undefined")

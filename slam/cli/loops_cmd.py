@@ -52,8 +52,8 @@ def loops(
 ) -> None:
     """Loop closure on LOG under each setting of a grid: precision/recall against ground truth (simulated
     logs) or Cartographer's 20 cm / 1° consistency after optimisation (real logs)."""
+    from core.atomic import check_output_dir
     from evaluation.loop_sweep import SWEEP_MARKER, parse_sweep, run_loop_sweep, sweep_grid, write_sweep
-    from registration.atomic import check_output_dir
     from slam.cli.run_cmd import load_config
     from slam.logs import open_log
 

@@ -30,7 +30,7 @@ def _poses_for(frames, source: str, max_dt: float):
     """(frame, world_T_base) pairs: from the frames' ground truth / odometry, or a TUM file by stamp."""
     import numpy as np
 
-    from registration.errors import ConfigError
+    from core.errors import ConfigError
 
     if source in ("ground_truth", "odometry"):
         attr = "ground_truth" if source == "ground_truth" else "odom"
@@ -74,6 +74,9 @@ def map_command(
     import numpy as np
     import yaml
 
+    from core.atomic import atomic_directory, check_output_dir
+    from core.errors import ConfigError
+    from core.yaml_config import load_yaml
     from mapping.beams import clip_range
     from mapping.config import MappingConfig
     from mapping.fastgpom import FastGPOM
@@ -81,9 +84,6 @@ def map_command(
     from mapping.grid import GridGeometry
     from mapping.logodds import LogOddsGrid
     from mapping.occupancy_map import export_map, write_occupancy_grid
-    from registration.atomic import atomic_directory, check_output_dir
-    from registration.config import load_yaml
-    from registration.errors import ConfigError
     from slam.logs import open_log
     from slam.logs.mcap_writer import McapLogWriter
 
@@ -130,11 +130,11 @@ def eval_map(
     """Scores of a map against a ground truth (unknown ground-truth cells ignored): ``auc`` (unobserved cells
     at p = 0.5), ``auc_observed`` (the cells the map observed), ``coverage`` (the ground truth's free space
     observed, isolated specks of free cells left out) and the best-threshold ``accuracy`` and ``f1`` (occupied class)."""
+    from core.atomic import check_output_file
+    from core.errors import MapFormatError
     from mapping.mapserver import read_map_server
     from mapping.occupancy_map import load_npz
     from mapping.roc import map_roc, map_scores, observed_on_grid, resample_to_grid
-    from registration.atomic import check_output_file
-    from registration.errors import MapFormatError
 
     if plot is not None:
         check_output_file(plot)
@@ -158,7 +158,7 @@ def eval_map(
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        from registration.atomic import atomic_path
+        from core.atomic import atomic_path
 
         fig, ax = plt.subplots(figsize=(5, 5), dpi=120)
         ax.plot(fpr, tpr, label=f"AUC = {auc:.4f}")

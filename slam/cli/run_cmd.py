@@ -16,7 +16,7 @@ def load_config(config: Path | None, overrides: dict):  # type: ignore[no-untype
     (``"section.key": value``) applied. Raises ConfigError naming the setting a value does not fit."""
     from pydantic import ValidationError
 
-    from registration.errors import ConfigError
+    from core.errors import ConfigError
     from slam.pipeline.config import SlamConfig
 
     cfg = SlamConfig.from_yaml(config) if config is not None else SlamConfig()
@@ -71,7 +71,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     import resource
     import time
 
-    from registration.errors import LogFormatError
+    from core.errors import LogFormatError
     from slam.logs import SkipLog, open_log
     from slam.pipeline.outputs import write_outputs
     from slam.pipeline.run import run_slam
@@ -167,7 +167,7 @@ def _loop_closures(result) -> int:  # type: ignore[no-untyped-def]
 def _explain_no_scans(frames, log: Path, skipped) -> Iterator:  # type: ignore[no-untyped-def]
     """*frames*, raising LogFormatError naming *log* when it yields none: every scan was skipped as corrupt
     (then the first skip says why), or the log has none."""
-    from registration.errors import LogFormatError
+    from core.errors import LogFormatError
 
     n = 0
     try:
@@ -205,7 +205,7 @@ def run(
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
 ) -> None:
     """Run SLAM on LOG: odometry, keyframes, verified loop closures, pose graph, Fast-GPOM map, all outputs."""
-    from registration.atomic import check_output_dir
+    from core.atomic import check_output_dir
     from slam.pipeline.outputs import RUN_MARKER
 
     overrides = {"odometry.method": odometry.value if odometry is not None else None,

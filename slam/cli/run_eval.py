@@ -23,8 +23,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from registration.errors import InputFileError
-from registration.frame import Frame
+from core.errors import InputFileError
+from core.frame import Frame
 
 _COMPRESSED = (".bz2", ".gz")
 _LOG_SUFFIXES = (".clf", ".log", ".carmen", ".txt", ".mcap", ".bag", ".bin")

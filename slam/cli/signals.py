@@ -16,7 +16,7 @@ import signal
 import threading
 from typing import Iterator
 
-from registration.atomic import HELD_SIGNALS
+from core.atomic import HELD_SIGNALS
 
 __all__ = ["Terminated", "terminations", "ignore_held_signals", "exit_code", "message"]
 

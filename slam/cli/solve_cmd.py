@@ -43,8 +43,8 @@ def solve(
     """
     import json
 
-    from registration.atomic import check_output_file
-    from registration.errors import ConfigError, GraphFormatError
+    from core.atomic import check_output_file
+    from core.errors import ConfigError, GraphFormatError
     from slam.graph import GraphError, RobustKernel, read_graph, write_g2o
     from slam.graph.connectivity import disconnection
     from slam.graph.costs import gtsam_error, sesync_objective

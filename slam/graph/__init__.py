@@ -10,7 +10,7 @@ __all__ = ["PoseGraph", "Edge", "EdgeArrays", "RobustKernel", "GraphError", "KIN
 
 def read_graph(path):  # type: ignore[no-untyped-def]
     """Read a g2o or TORO file, chosen by content (``VERTEX2``/``EDGE2`` records mean TORO)."""
-    from registration.errors import GraphFormatError
+    from core.errors import GraphFormatError
 
     from .g2o import graph_lines
 

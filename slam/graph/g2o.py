@@ -25,10 +25,10 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from registration.atomic import atomic_open
-from registration.errors import GraphFormatError
-from registration.numbers import c_floats, c_int
-from registration.textfile import text_lines
+from core.atomic import atomic_open
+from core.errors import GraphFormatError
+from core.numbers import c_floats, c_int
+from core.textfile import text_lines
 
 from .costs import sesync_weights
 from .posegraph import KINDS, PRIOR_NODE, PoseGraph, RobustKernel
@@ -114,7 +114,7 @@ def graph_lines(path: str) -> Iterator[tuple[int, str]]:
 
 
 def parse_numbers(path: str, lineno: int, fields: list[str], n: int, what: str) -> list[float]:
-    """*n* finite numbers (C locale grammar, :mod:`registration.numbers`) of a record, or a GraphFormatError."""
+    """*n* finite numbers (C locale grammar, :mod:`core.numbers`) of a record, or a GraphFormatError."""
     if len(fields) != n:
         raise GraphFormatError(path, f"line {lineno}", f"{what}: expected {n} numbers, got {len(fields)}")
     try:

@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
+from core import geometry as geo
 
 from .costs import chordal_weights
 from .posegraph import GraphError, PoseGraph

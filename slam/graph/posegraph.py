@@ -22,8 +22,8 @@ from typing import Literal, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
-from registration.errors import GeometryError, GpslamError
+from core import geometry as geo
+from core.errors import GeometryError, GpslamError
 
 from .connectivity import component_labels, free_component_anchors
 

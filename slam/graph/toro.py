@@ -13,8 +13,8 @@ import os
 
 import numpy as np
 
-from registration.atomic import atomic_open
-from registration.errors import GraphFormatError
+from core.atomic import atomic_open
+from core.errors import GraphFormatError
 
 from .g2o import (TAG_PREFIX, ParsedGraph, build_graph, format_numbers, format_tag, full_to_upper, graph_lines, parse_id,
                   parse_numbers, parse_tag)

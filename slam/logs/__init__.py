@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from registration.errors import LogFormatError
+from core.errors import LogFormatError
 
 from .base import LogInfo, LogReader, SkipHandler, SkipLog, TopicInfo
 

@@ -7,8 +7,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
 
-from registration.errors import LogFormatError
-from registration.frame import Frame
+from core.errors import LogFormatError
+from core.frame import Frame
 
 #: Called with the error of each corrupt record a reader skipped (see :meth:`LogReader.frames`).
 SkipHandler = Callable[[LogFormatError], None]
@@ -71,7 +71,7 @@ class LogInfo:
 
 
 class LogReader(abc.ABC):
-    """A log that yields :class:`~registration.frame.Frame` objects in time order, streaming.
+    """A log that yields :class:`~core.frame.Frame` objects in time order, streaming.
 
     Implementations keep memory constant in the log length: they hold at most the current
     message plus small interpolation state (odometry, transforms).

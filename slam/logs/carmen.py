@@ -51,10 +51,10 @@ from typing import IO, Iterator
 
 import numpy as np
 
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
-from registration.frame import Frame
-from registration.numbers import c_float, c_int
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
+from core.frame import Frame
+from core.numbers import c_float, c_int
 
 from .base import UNKNOWN, LogInfo, LogReader, SkipHandler, TopicInfo, counting, lost
 
@@ -89,7 +89,7 @@ def _short(tok: bytes, n: int = 24) -> str:
 
 
 def _c_array(tokens: list[bytes]) -> np.ndarray:
-    """``np.array(tokens, float64)`` by the C locale grammar (:mod:`registration.numbers`): numpy reads
+    """``np.array(tokens, float64)`` by the C locale grammar (:mod:`core.numbers`): numpy reads
     bytes as ``float()`` does, which also takes ``1_000``; non-ASCII bytes it refuses already."""
     if b"_" in b"".join(tokens):
         raise ValueError("a '_' digit group")

@@ -26,9 +26,9 @@ from typing import Iterator
 
 import numpy as np
 
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
-from registration.frame import Frame
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
+from core.frame import Frame
 
 from .base import LogInfo, LogReader, SkipHandler, TopicInfo, counting, lost
 

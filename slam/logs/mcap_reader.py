@@ -25,7 +25,7 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from registration.errors import LogFormatError
+from core.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo, lost
 from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages, message_counts

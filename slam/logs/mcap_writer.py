@@ -14,7 +14,7 @@ whole number of nanoseconds (e.g. ``k / 10``, not ``k * 0.1``). Poses are 4×4
 matrices ``parent_T_child`` (metres); quaternions are written ``(x, y, z, w)``.
 
 The file is written to a temporary sibling and renamed on a clean exit of the ``with`` block
-(:mod:`registration.atomic`), so a failed run never leaves a half-written log.
+(:mod:`core.atomic`), so a failed run never leaves a half-written log.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
-from registration.atomic import atomic_path
-from registration.errors import GeometryError
+from core import geometry as geo
+from core.atomic import atomic_path
+from core.errors import GeometryError
 
 from .ros_msgs import (
     LASER_SCAN,
@@ -45,7 +45,7 @@ from .ros_msgs import (
 )
 
 if TYPE_CHECKING:
-    from registration.frame import Frame
+    from core.frame import Frame
 
 Array = NDArray[np.float64]
 

@@ -5,7 +5,7 @@ What lives here:
 * the rosbags typestores (ROS 2 Humble for writing; per-file stores built from the message
   definitions carried in the log for reading, so that files written by others decode too);
 * stamp conversion float seconds ↔ ``builtin_interfaces/Time`` (sec, nanosec) to the nanosecond;
-* message → pose / :class:`~registration.frame.Frame` conversion (LaserScan, PointCloud2,
+* message → pose / :class:`~core.frame.Frame` conversion (LaserScan, PointCloud2,
   Odometry, PoseStamped, TFMessage);
 * a vectorised PointCloud2 decoder for any field layout;
 * a small TF buffer (static + dynamic transforms) and a pose track that interpolates odometry
@@ -32,9 +32,9 @@ from typing import Any, Iterable, Iterator, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration import geometry as geo
-from registration.errors import LogFormatError, TopicNotFoundError
-from registration.frame import Frame
+from core import geometry as geo
+from core.errors import LogFormatError, TopicNotFoundError
+from core.frame import Frame
 
 from .base import LogInfo, LogReader, SkipHandler, TopicInfo, counting, lost
 

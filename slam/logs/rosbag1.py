@@ -3,7 +3,7 @@
 The container is read by ``rosbags.rosbag1.Reader``; messages are decoded with types built from
 the message definitions stored in the bag's connection records, so bags with any message set
 (e.g. ``tf2_msgs/TFMessage``, which the Noetic store of rosbags lacks) decode without ROS. The
-conversions to :class:`~registration.frame.Frame` are shared with the MCAP reader
+conversions to :class:`~core.frame.Frame` are shared with the MCAP reader
 (:mod:`slam.logs.ros_msgs`). Stamps are the header stamps (float seconds).
 
 Memory: rosbags keeps the bag's index (one small entry per message) in memory and one
@@ -18,7 +18,7 @@ import heapq
 from pathlib import Path
 from typing import Any, Iterator
 
-from registration.errors import LogFormatError
+from core.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo, lost
 from .ros_msgs import RawMessage, RosLogReader, build_typestore, normalize_msgtype

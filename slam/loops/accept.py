@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from registration import geometry as G
+from core import geometry as G
 from slam.keyframes import Keyframe
 
 from .config import LoopConfig

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as G
+from core import geometry as G
 from slam.keyframes import Keyframe
 
 from . import candidates as C

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from core import geometry as G
 from registration import correlative
-from registration import geometry as G
 from registration.target import IcpTarget
 from slam.keyframes import Keyframe
 

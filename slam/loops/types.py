@@ -5,7 +5,7 @@ that may be) goes to the verifier; a :class:`Verified` alignment (pose, covarian
 :class:`Rejection` comes back; the acceptance stage turns verified alignments into
 :class:`LoopClosure` constraints for the pose graph. Poses are 4×4 ``float64``; an ``i_sensor_T_j_sensor``
 is keyframe *j*'s sensor frame in keyframe *i*'s. Covariances are in the tangent order of
-:mod:`registration.geometry` (translation first), metres and radians.
+:mod:`core.geometry` (translation first), metres and radians.
 """
 
 from __future__ import annotations

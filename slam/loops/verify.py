@@ -32,11 +32,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from core import geometry as G
+from core.errors import DegenerateInputError
 from registration import correlative
-from registration import geometry as G
 from registration.alignment import IcpResult, evaluate_alignment
 from registration.config import IcpConfig
-from registration.errors import DegenerateInputError
 from registration.icp import icp
 from registration.point_to_plane import icp_point_to_plane
 from slam.keyframes import Keyframe

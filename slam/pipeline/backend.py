@@ -15,7 +15,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as G
+from core import geometry as G
 from slam.graph.posegraph import KINDS, PoseGraph, RobustKernel
 
 from .config import BackendConfig, LoopConfig

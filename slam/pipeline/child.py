@@ -15,7 +15,7 @@ import resource
 import tempfile
 from typing import Any, Callable, Iterator
 
-from registration.errors import GpslamError
+from core.errors import GpslamError
 
 Reply = Callable[[tuple], None]
 

@@ -115,7 +115,7 @@ class SlamConfig(_Model):
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SlamConfig":
         """Load from YAML; unknown keys and bad values raise ConfigError naming the file."""
-        from registration.config import load_yaml
+        from core.yaml_config import load_yaml
 
         return load_yaml(cls, path)  # type: ignore[return-value]
 

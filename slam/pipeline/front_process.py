@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Iterator
 
-from registration.frame import Frame
+from core.frame import Frame
 
 from .child import ChildProcess, Reply, peak_memory_mb
 from .config import SlamConfig

@@ -8,7 +8,7 @@ the same for KISS-ICP and our ICP, scaled up by the a-posteriori variance factor
 scan fits worse than σ (config ``odometry.edge_sigma_from_residuals``), plus a noise floor growing
 with the motion (config ``odometry.floor_*``) because that covariance treats the previous scan as
 exact. When the edge cannot be evaluated (too few overlapping points) the per-scan covariances
-compounded along the way (:func:`registration.geometry.compound_covariance`) are used instead.
+compounded along the way (:func:`core.geometry.compound_covariance`) are used instead.
 A step no wheel edge backs also carries how far it may have slid: the second moment of the
 poses that score as well on the keyframe-to-keyframe correlative surface (config
 ``odometry.edge_ambiguity_*``; Olson 2009; docs/LOOP_CLOSURE.md, "How far a step without wheels may
@@ -26,12 +26,12 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from core import geometry as G
+from core.errors import DegenerateInputError
+from core.frame import Frame
 from registration import correlative
-from registration import geometry as G
 from registration.alignment import evaluate_alignment
 from registration.config import IcpConfig
-from registration.errors import DegenerateInputError
-from registration.frame import Frame
 from registration.odometry import Odometry, OdometryStep
 from registration.target import IcpTarget
 from registration.voxel import voxel_downsample

@@ -23,8 +23,8 @@ from typing import Callable, Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.errors import GpslamError
-from registration.frame import Frame
+from core.errors import GpslamError
+from core.frame import Frame
 
 from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig, SlamConfig

@@ -13,11 +13,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from core import geometry as G
+from core.frame import Frame
 from mapping.grid import GridGeometry
 from mapping.occupancy_map import OccupancyMap
 from mapping.submaps import SubmapFuser
-from registration import geometry as G
-from registration.frame import Frame
 
 from .config import MappingStageConfig
 from .frontend import Keyframe

@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from registration.atomic import atomic_directory
+from core.atomic import atomic_directory
 
 from .config import SlamConfig
 from .run import SlamResult
@@ -66,7 +66,7 @@ def _write_mcap(path: Path, result: SlamResult, occ_map) -> None:  # type: ignor
 def _write_ply(path: Path, result: SlamResult, voxel: float) -> None:
     import open3d as o3d
 
-    from registration import geometry as G
+    from core import geometry as G
     from registration.voxel import voxel_downsample
 
     parts = [G.transform_points(T @ kf.base_T_sensor, kf.points) for kf, T in zip(result.keyframes, result.keyframe_poses)]

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.errors import GpslamError
+from core.errors import GpslamError
 
 from .backend import PipelineBackend
 from .config import SlamConfig

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-from registration import geometry as G
+from core import geometry as G
 from slam.keyframes import Keyframe
 from slam.loops.types import LoopClosure
 from slam.loops.verify import free_space_violation

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import geometry as G
+from core import geometry as G
 
 Array = NDArray[np.float64]
 

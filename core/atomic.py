@@ -7,7 +7,7 @@ SIGHUP are held back while a finished directory is moved into place and while te
 so a signal leaves either the complete new outputs or the previous ones, and no temporary.
 
 Output paths are checked before any work (:func:`check_output_file`, :func:`check_output_dir`), and a
-failure to write (a full disk, a read-only file system) is an :class:`~registration.errors.OutputError`
+failure to write (a full disk, a read-only file system) is an :class:`~core.errors.OutputError`
 naming the target, so the CLI prints one line.
 """
 
