@@ -36,12 +36,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from core import geometry as G  # noqa: E402
+from core.trajectory import Trajectory  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import SlamConfig  # noqa: E402
 from slam.pipeline.loop_replay import FrontEndRecord, record_front_end, replay_loops  # noqa: E402
 from slam.pipeline.self_check import self_check  # noqa: E402
-from slam.trajectory_io import Trajectory  # noqa: E402
 
 
 def tilted(record: FrontEndRecord, deg_per_m: float) -> FrontEndRecord:

@@ -89,7 +89,7 @@ class _OdometryTap:
             yield f
 
     def trajectory(self):  # type: ignore[no-untyped-def]
-        from slam.trajectory_io import Trajectory
+        from core.trajectory import Trajectory
 
         if not self.stamps:
             return None
@@ -98,9 +98,9 @@ class _OdometryTap:
 
 def run_ours(log: Path, relations, max_scans: int | None) -> dict:  # type: ignore[no-untyped-def]
     """``slam run`` (default config, mapping on) into a temporary folder; relation error and wall time."""
+    from core.trajectory import read_tum
     from evaluation.peers import stdout_to_stderr
     from slam.cli.run_cmd import load_config, run_log
-    from slam.trajectory_io import read_tum
 
     cfg = load_config(None, {"max_scans": max_scans})
     with tempfile.TemporaryDirectory(prefix="peers-ours-") as tmp:

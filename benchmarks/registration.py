@@ -589,8 +589,8 @@ def bench_kiss_kitti(frames) -> dict:
 
 
 def _relations(stamps, poses):
+    from core.trajectory import Trajectory
     from evaluation.relations import evaluate_relations, read_relations
-    from slam.trajectory_io import Trajectory
 
     r = evaluate_relations(Trajectory(stamps, poses), read_relations(INTEL_REL))
     return {"trans_mean_m": r.trans_mean, "trans_std_m": r.trans_std, "rot_mean_deg": r.rot_mean_deg,

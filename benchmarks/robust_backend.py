@@ -38,12 +38,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from core import geometry as G  # noqa: E402
+from core.trajectory import Trajectory, read_node_stamps  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
 from slam.backends.gtsam_backend import optimize  # noqa: E402
 from slam.graph import read_graph  # noqa: E402
 from slam.graph.posegraph import KINDS, PoseGraph, RobustKernel  # noqa: E402
 from slam.pipeline.trajectory import interpolate_scan_poses  # noqa: E402
-from slam.trajectory_io import Trajectory, read_node_stamps, read_trajectory  # noqa: E402
+from slam.trajectory_io import read_trajectory  # noqa: E402
 
 METHODS = ("none", "huber", "cauchy", "dcs", "gnc", "cauchy_prune")
 

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from core import geometry as geo
 from core.errors import ConfigError
-from slam.trajectory_io import Trajectory
+from core.trajectory import Trajectory
 
 from .trajectory import AlignMode, Alignment, align_trajectory, associate
 

@@ -90,10 +90,8 @@ class TruthScore:
 
 def loop_edges_from_graph(graph) -> LoopEdges:  # graph: slam.graph.PoseGraph
     """The edges of kind ``loop`` of a :class:`slam.graph.PoseGraph` (indices into its node order)."""
-    from slam.graph.posegraph import KINDS
-
     a = graph.edge_arrays()
-    m = a.kinds == KINDS.index("loop")
+    m = np.array(graph.edge_kinds, dtype=object) == "loop"
     return LoopEdges(a.ii[m].copy(), a.jj[m].copy(), a.measurements[m].copy())
 
 

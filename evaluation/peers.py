@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from core import geometry as geo
 from core.errors import GpslamError
 from core.frame import Frame
-from slam.trajectory_io import Trajectory
+from core.trajectory import Trajectory
 
 Array = NDArray[np.float64]
 

@@ -29,7 +29,7 @@ from core import geometry as geo
 from core.errors import LogFormatError
 from core.numbers import c_floats
 from core.textfile import text_lines
-from slam.trajectory_io import Trajectory
+from core.trajectory import Trajectory
 
 from .trajectory import nearest_indices
 

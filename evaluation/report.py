@@ -2,7 +2,7 @@
 
 Reads whatever of the pipeline outputs exist in the folder (DESIGN.md "Outputs of slam run"):
 ``trajectory.tum`` (optimised pose of every scan), ``odometry.tum``, ``graph.g2o`` (loop edges
-marked), ``map.npz`` (``mean``, ``variance``, ``probability``, ``resolution``, ``origin``) and
+marked; the caller reads it, :mod:`slam.cli.report_io`), ``map.npz`` (``mean``, ``variance``, ``probability``, ``resolution``, ``origin``) and
 ``summary.json`` (stage timings under ``stage_times_s``, seconds, as ``slam run`` writes them).
 Optional inputs: a ground-truth trajectory (APE after SE(2)/SE(3) Umeyama alignment, RPE over one
 frame, loop precision/recall), Kümmerle relations (with the published numbers) and a ground-truth
@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from core import geometry as geo
 from core.atomic import atomic_open
 from core.errors import GpslamError, InputFileError, MapFormatError
+from core.trajectory import Trajectory
 
 Array = NDArray[np.float64]
 
@@ -155,18 +156,21 @@ def _node_stamps(result_dir: Path, graph: Any, traj: Any) -> Array | None:
 
 def build_report(
     result_dir: str | os.PathLike[str],
-    gt: str | os.PathLike[str] | None = None,
+    gt: Trajectory | None = None,
     relations: str | os.PathLike[str] | None = None,
     gt_map: str | os.PathLike[str] | None = None,
     max_diff: float = 0.01,
     result_label: str | None = None,
+    graph=None,  # type: ignore[no-untyped-def]
 ) -> Report:
     """Compute the metrics and figures for *result_dir* (see the module docstring).
 
+    *gt* is the ground-truth trajectory and *graph* the run's pose graph (its ``graph.g2o``), both read by
+    the caller (a robot log's ground truth and the g2o format are the ``slam`` package's to read).
     *result_label* is how the report names the result folder (default: *result_dir*), e.g. the
     final folder when the report is written into a temporary one that is moved there afterwards.
     """
-    from slam.trajectory_io import read_trajectory, read_tum
+    from core.trajectory import read_tum
 
     from . import plots
     from .ape_rpe import evaluate_ape, evaluate_rpe
@@ -193,7 +197,7 @@ def build_report(
             rep.notes.append(f"{name} not found")
 
     # --- ground truth: APE / RPE
-    gt_traj = read_trajectory(gt) if gt is not None else None  # TUM, or the ground truth of a simulated log
+    gt_traj = gt
     aligned_paths: dict[str, Array] = {}
     gt_T_map: Array | None = None
     ape_series: dict[str, tuple[Array, Array]] = {}
@@ -245,14 +249,10 @@ def build_report(
             m["relations"]["published"]["cartographer_loop_constraints"] = n_c
 
     # --- graph and loops
-    graph = None
     loops_xy: Array | None = None
-    if (rd / "graph.g2o").exists():
-        from slam.graph import read_graph
-
+    if graph is not None:
         from .loops import loop_edges_from_graph, score_against_truth, score_loops
 
-        graph = read_graph(rd / "graph.g2o")
         kinds = graph.edge_kinds
         m["graph"] = {"nodes": graph.num_nodes, "edges": graph.num_edges,
                       "odometry_edges": kinds.count("odometry"), "loop_edges": kinds.count("loop")}
@@ -279,7 +279,7 @@ def build_report(
         else:
             rep.notes.append("graph.g2o has no vertex poses: loop precision not computed")
     else:
-        rep.notes.append("graph.g2o not found")
+        rep.notes.append("graph.g2o not found" if not (rd / "graph.g2o").exists() else "graph.g2o not read")
 
     # --- map and ROC
     mp = None
@@ -452,14 +452,16 @@ figure {{ margin: 2em 0; }} img {{ max-width: 100%; }} figcaption {{ color: #555
 
 def write_report(
     result_dir: str | os.PathLike[str],
-    gt: str | os.PathLike[str] | None = None,
+    gt: Trajectory | None = None,
     relations: str | os.PathLike[str] | None = None,
     gt_map: str | os.PathLike[str] | None = None,
     out_dir: str | os.PathLike[str] | None = None,
     result_label: str | None = None,
+    graph=None,  # type: ignore[no-untyped-def]
 ) -> Report:
-    """Build the report and write ``report.html`` and ``metrics.json`` into *out_dir* (default *result_dir*)."""
-    rep = build_report(result_dir, gt, relations, gt_map, result_label=result_label)
+    """Build the report (:func:`build_report`) and write ``report.html`` and ``metrics.json`` into *out_dir*
+    (default *result_dir*)."""
+    rep = build_report(result_dir, gt, relations, gt_map, result_label=result_label, graph=graph)
     od = Path(out_dir) if out_dir is not None else Path(result_dir)
     with atomic_open(od / "metrics.json", "w", encoding="utf-8") as fh:
         json.dump(rep.metrics, fh, indent=2)

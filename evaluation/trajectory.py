@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core.errors import DegenerateInputError, GpslamError
-from slam.trajectory_io import Trajectory
+from core.trajectory import Trajectory
 
 Array = NDArray[np.float64]
 

@@ -22,10 +22,10 @@ def main() -> None:
     ap.add_argument("--out", default="out/loop_experiment")
     args = ap.parse_args()
 
-    from evaluation.loop_sweep import parse_sweep, sweep_recorded, write_sweep
     from evaluation.sim import LASER_PRESETS, load_world, simulate
     from slam.pipeline.config import SlamConfig
     from slam.pipeline.loop_replay import record_front_end
+    from slam.pipeline.loop_sweep import parse_sweep, sweep_recorded, write_sweep
 
     # 1. Simulate a log with ground truth: the robot tours the world and comes back (revisits exist).
     sim = simulate(load_world(args.world), n_scans=args.scans, spec=LASER_PRESETS[args.sensor], seed=args.seed)

@@ -20,13 +20,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("out/example_slam"))
     args = ap.parse_args()
 
+    from core.trajectory import Trajectory
     from evaluation.published import published_for
     from evaluation.relations import evaluate_relations, read_relations
     from slam.logs import open_log
     from slam.pipeline.config import SlamConfig
     from slam.pipeline.outputs import write_outputs
     from slam.pipeline.run import run_slam
-    from slam.trajectory_io import Trajectory
 
     # 1. Open the log: the reader streams Frames (scan, wheel odometry, sensor mounting).
     reader = open_log(args.log)

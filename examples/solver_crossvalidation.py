@@ -19,8 +19,8 @@ def main() -> None:
     ap.add_argument("graph", nargs="?", default=DEFAULT, type=Path)
     args = ap.parse_args()
 
-    from evaluation.crosscheck import crosscheck
     from slam.backends.chordal import solve_chordal
+    from slam.backends.crosscheck import crosscheck
     from slam.backends.gtsam_backend import optimize
     from slam.graph.costs import sesync_objective
     from slam.graph.g2o import read_g2o

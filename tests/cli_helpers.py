@@ -27,7 +27,8 @@ def one_error_line(code: int, err: str, *names: object) -> str:
 def corridor_log(path, n_scans: int, seed: int):  # type: ignore[no-untyped-def]
     """A simulated corridor tour (SICK LMS laser, wheel odometry, ground truth) written as the MCAP *path*,
     with its ground-truth map beside it; returns the SimulatedLog."""
-    from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+    from evaluation.sim import LASER_PRESETS, load_world, simulate
+    from slam.logs.simulated import write_simulated_log
 
     sim = simulate(load_world("corridor"), n_scans=n_scans, spec=LASER_PRESETS["sick_lms"], seed=seed)
     write_simulated_log(sim, path)

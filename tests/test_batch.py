@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 
 from core import geometry as G
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+from evaluation.sim import LASER_PRESETS, load_world, simulate
 from slam.cli import main
+from slam.logs.simulated import write_simulated_log
 from tests.conftest import DATA, REPO
 from tests.test_logs_skip import rewrite_mcap
 

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core.trajectory import Trajectory
 from evaluation import peers
 from evaluation.published import PUBLISHED
 from evaluation.relations import evaluate_relations, read_relations
 from slam.logs import open_log
-from slam.trajectory_io import Trajectory
 from tests.conftest import DATA, REPO
 
 INTEL = DATA / "intel.clf.bz2"

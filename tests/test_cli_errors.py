@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.sim.simulate import map_paths
 from slam.cli import main
+from slam.logs.simulated import map_paths
 from tests.cli_helpers import corridor_log
 
 pytestmark = pytest.mark.xdist_group("pipeline")

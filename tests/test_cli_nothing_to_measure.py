@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core.trajectory import Trajectory, write_tum
 from slam.graph import PoseGraph, write_g2o
-from slam.trajectory_io import Trajectory, write_tum
 from tests.cli_helpers import corridor_log, one_error_line
 from tests.cli_helpers import slam as _slam
 

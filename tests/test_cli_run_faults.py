@@ -13,10 +13,11 @@ import time
 import numpy as np
 import pytest
 
+from core.trajectory import read_tum
 from evaluation.relations import read_relations
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+from evaluation.sim import LASER_PRESETS, load_world, simulate
 from slam.cli import main
-from slam.trajectory_io import read_tum
+from slam.logs.simulated import write_simulated_log
 from tests.conftest import DATA, REPO
 from tests.test_logs_skip import rewrite_mcap
 

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core.trajectory import Trajectory, read_tum, write_tum
 from evaluation.ape_rpe import evaluate_ape, evaluate_rpe, rpe_pairs, statistics
 from evaluation.trajectory import associate, align_trajectory, umeyama
-from slam.trajectory_io import Trajectory, read_tum, write_tum
 
 evo_file = pytest.importorskip("evo.tools.file_interface")
 from evo.core import metrics as evo_metrics  # noqa: E402

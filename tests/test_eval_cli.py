@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
-from slam.trajectory_io import Trajectory, write_tum
+from core.trajectory import Trajectory, write_tum
 
 SLAM = str(Path(sys.executable).parent / "slam")
 

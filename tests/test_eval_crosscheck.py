@@ -13,8 +13,8 @@ import pytest
 from core import geometry as geo
 
 pytest.importorskip("slam.graph")
+from slam.backends.crosscheck import crosscheck  # noqa: E402
 from slam.graph import PoseGraph, write_g2o  # noqa: E402
-from evaluation.crosscheck import crosscheck  # noqa: E402
 
 
 def _graph(rng, n=60) -> tuple[PoseGraph, np.ndarray]:
@@ -80,7 +80,7 @@ def test_gtsam_chi2_matches_direct_gtsam(rng):
 
 def test_cli_writes_json(tmp_path, rng):
     """`slam eval crosscheck GRAPH A B --json` writes the same objectives it prints."""
-    from slam.trajectory_io import Trajectory, write_tum
+    from core.trajectory import Trajectory, write_tum
 
     g, A = _graph(rng, 30)
     write_g2o(g, tmp_path / "g.g2o")

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core.trajectory import Trajectory, write_tum
 from evaluation.published import DATASET_NAMES, METRIC_KEYS, PUBLISHED, recognise_dataset
 from evaluation.relations import Relations, evaluate_relations, read_relations
-from slam.trajectory_io import Trajectory, write_tum
 from tests.conftest import DATA, shared_path
 
 

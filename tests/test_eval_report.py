@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core.trajectory import Trajectory, write_tum
 from evaluation.report import flatten_metrics, resample_classes
-from slam.trajectory_io import Trajectory, write_tum
 
 RES = 0.1
 GT_ORIGIN = np.array([-2.0, -2.0, 0.0])

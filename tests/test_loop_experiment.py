@@ -17,12 +17,13 @@ import pytest
 
 from core import geometry as G
 from core.errors import ConfigError
-from evaluation.loop_sweep import COLUMNS_SELF, parse_sweep, sweep_grid, sweep_recorded
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+from evaluation.sim import LASER_PRESETS, load_world, simulate
 from slam.cli import main
 from slam.logs import open_log
+from slam.logs.simulated import write_simulated_log
 from slam.pipeline.config import LoopConfig, SlamConfig
 from slam.pipeline.loop_replay import record_front_end
+from slam.pipeline.loop_sweep import COLUMNS_SELF, parse_sweep, sweep_grid, sweep_recorded
 from slam.pipeline.run import run_slam
 
 pytestmark = pytest.mark.xdist_group("pipeline")

@@ -149,8 +149,9 @@ def test_cli_map_and_eval(tmp_path):
     from typer.testing import CliRunner
 
     from evaluation.sim import LASER_PRESETS, load_world
-    from evaluation.sim.simulate import simulate, write_simulated_log
+    from evaluation.sim.simulate import simulate
     from slam.cli import app
+    from slam.logs.simulated import write_simulated_log
 
     world = load_world("rooms", 0.05, seed=2)
     sim = simulate(world, n_scans=40, spec=LASER_PRESETS["fastgpom"], seed=2)
@@ -191,10 +192,11 @@ def test_cli_map_tum_poses_equal_ground_truth(tmp_path):
     `--poses ground_truth` (stamps matched to scans)."""
     from typer.testing import CliRunner
 
+    from core.trajectory import Trajectory, write_tum
     from evaluation.sim import LASER_PRESETS, load_world
-    from evaluation.sim.simulate import simulate, write_simulated_log
+    from evaluation.sim.simulate import simulate
     from slam.cli import app
-    from slam.trajectory_io import Trajectory, write_tum
+    from slam.logs.simulated import write_simulated_log
 
     world = load_world("rooms", 0.05, seed=4)
     sim = simulate(world, n_scans=12, spec=LASER_PRESETS["fastgpom"], seed=4)
@@ -310,8 +312,9 @@ def test_cli_map_plot_trajectory_draws_the_path(tmp_path):
     from typer.testing import CliRunner
 
     from evaluation.sim import LASER_PRESETS, load_world
-    from evaluation.sim.simulate import simulate, write_simulated_log
+    from evaluation.sim.simulate import simulate
     from slam.cli import app
+    from slam.logs.simulated import write_simulated_log
 
     world = load_world("rooms", 0.05, seed=3)
     sim = simulate(world, n_scans=200, spec=LASER_PRESETS["fastgpom"], seed=3)

@@ -161,8 +161,9 @@ def test_on_a_simulated_log_the_calibration_scales_follow_the_wheel_noise(tmp_pa
     (σ ratio √25 = 5): the calibration fitted against the registration trusts the quiet wheels more in both blocks.
     In heading the ratio of the fitted scales is the noise ratio (3–8×; measured 5.0); in translation the quiet
     wheels sit below the registration's own noise and the scale goes to its lower bound (> 2×; measured 9.5)."""
-    from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+    from evaluation.sim import LASER_PRESETS, load_world, simulate
     from slam.logs import open_log
+    from slam.logs.simulated import write_simulated_log
     from slam.pipeline.odometry_source import make_odometry
 
     scales = {}

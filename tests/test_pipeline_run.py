@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 from core import geometry as G
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+from core.trajectory import read_tum
+from evaluation.sim import LASER_PRESETS, load_world, simulate
 from slam.cli import main
 from slam.logs import open_log
+from slam.logs.simulated import write_simulated_log
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.run import run_slam
-from slam.trajectory_io import read_tum
 
 pytestmark = pytest.mark.xdist_group("pipeline")
 

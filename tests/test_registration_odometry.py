@@ -45,8 +45,8 @@ def test_kiss_beats_wheel_odometry_on_intel_relations():
     """On the first 2000 Intel scans, KISS-ICP (z = 0, no deskew, wheel guess) has a smaller mean
     Kümmerle relation error (translation and rotation) and a smaller median rotation error than raw
     wheel odometry (scan matching removes the heading drift)."""
+    from core.trajectory import Trajectory
     from evaluation.relations import evaluate_relations, read_relations
-    from slam.trajectory_io import Trajectory
 
     frames = _intel_frames(2000)
     odo = KissOdometry(KissOdometryConfig.planar_default().model_copy(update={"compute_covariance": False}))

@@ -12,8 +12,9 @@ from scipy.spatial import cKDTree
 
 from core import geometry as geo
 from evaluation.sim import LASER_PRESETS, load_world
-from evaluation.sim.simulate import map_paths, odometry_from_ground_truth, simulate, write_simulated_log
+from evaluation.sim.simulate import odometry_from_ground_truth, simulate
 from mapping.mapserver import read_map_server
+from slam.logs.simulated import map_paths, write_simulated_log
 from tests.conftest import REPO
 
 SPEC = LASER_PRESETS["fastgpom"]

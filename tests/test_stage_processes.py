@@ -10,8 +10,9 @@ import pytest
 
 from core.errors import GpslamError
 from core.frame import Frame
-from evaluation.sim import LASER_PRESETS, load_world, simulate, write_simulated_log
+from evaluation.sim import LASER_PRESETS, load_world, simulate
 from slam.logs import open_log
+from slam.logs.simulated import write_simulated_log
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.front_process import FrontEndProcess
 from slam.pipeline.run import run_slam

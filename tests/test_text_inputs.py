@@ -11,9 +11,12 @@ from hypothesis import strategies as st
 
 from core.errors import GraphFormatError, InputFileError, LogFormatError
 from core.numbers import c_float, c_int
+from core.trajectory import read_g2o_vertices, read_kitti, read_tum
 from evaluation.relations import read_relations
 from slam.graph import read_g2o, read_graph, read_toro
-from slam.trajectory_io import read_g2o_vertices, read_kitti, read_trajectory, read_tum
+
+# The decimal strtod grammar of the C locale, written out independently of core.numbers.
+from slam.trajectory_io import read_trajectory
 
 # The decimal strtod grammar of the C locale, written out independently of core.numbers.
 C_FLOAT = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)", re.I)

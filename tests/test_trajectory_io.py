@@ -7,8 +7,9 @@ import pytest
 
 from core import geometry as geo
 from core.errors import LogFormatError
-import slam.trajectory_io as tio
-from slam.trajectory_io import Trajectory, read_g2o_vertices, read_kitti, read_trajectory, read_tum, write_kitti, write_tum
+import core.trajectory as tio
+from core.trajectory import Trajectory, read_g2o_vertices, read_kitti, read_tum, write_kitti, write_tum
+from slam.trajectory_io import read_trajectory
 
 
 def _random_traj(rng, n=50) -> Trajectory:

@@ -13,7 +13,7 @@ A spec is YAML. Relative paths are relative to the spec's folder; log paths may 
         topic: null              # sensor topic (MCAP / ROS 1)
         config:                  # values for this log alone, applied after the setting's
           odometry.use_wheel_odometry: false
-    sweep:                       # NAME=start:stop:count, the grammar of `slam loops` (evaluation.loop_sweep):
+    sweep:                       # NAME=start:stop:count, the grammar of `slam loops` (slam.pipeline.loop_sweep):
       - exclude_recent_keyframes=10:20:3   # a bare name is a loops setting,
       - odometry.icp_tolerance=4e-4:6e-4:3 # a dotted one any numeric config value
     settings:                    # explicit settings, each some config values and an optional id
@@ -203,7 +203,7 @@ def _settings(explicit: list[Any] | None, sweeps: list[str], base: SlamConfig, s
               key: str = "settings") -> tuple[list[Setting], dict[str, list[Any]]]:
     """Explicit settings × the sweep grid, each validated against *base*. On the command line a bad
     ``--sweep`` is the ConfigError of ``slam loops`` (it names the option); in a spec it names the entry."""
-    from evaluation.loop_sweep import numeric_fields, parse_sweep, sweep_grid
+    from slam.pipeline.loop_sweep import numeric_fields, parse_sweep, sweep_grid
 
     fields = numeric_fields(SlamConfig)
     loop_fields = numeric_fields(LoopConfig)

@@ -22,12 +22,12 @@ def demo(
 ) -> None:
     """Run SLAM on the bundled Intel log and print the relation error beside the published ones."""
     from core.atomic import check_output_dir
+    from core.trajectory import read_tum
     from evaluation.published import recognise_dataset
     from evaluation.relations import evaluate_relations, read_relations
     from slam.cli.eval_cmd import relations_table
     from slam.cli.run_cmd import load_config, run_log
     from slam.pipeline.outputs import RUN_MARKER
-    from slam.trajectory_io import read_tum
 
     cfg = load_config(None, {"max_scans": max_scans})
     check_output_dir(out, RUN_MARKER)

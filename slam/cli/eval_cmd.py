@@ -205,12 +205,13 @@ def nees_cmd(
     import numpy as np
 
     from core.errors import InputFileError
+    from core.trajectory import read_node_stamps
     from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
     from evaluation.relations import read_relations
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
     from slam.graph.posegraph import KINDS
-    from slam.trajectory_io import read_node_stamps, read_trajectory
+    from slam.trajectory_io import read_trajectory
 
     graph = read_graph(run / "graph.g2o")
     if graph.dim != 2:
@@ -277,8 +278,9 @@ def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: flo
     """True poses of the graph nodes: by stamp (``--node-stamps`` file of 'id stamp' or one stamp per node)
     or, without it, node id = row of the ground-truth trajectory."""
     from core.errors import LogFormatError
+    from core.trajectory import read_node_stamps
     from evaluation.trajectory import nearest_indices
-    from slam.trajectory_io import read_node_stamps, read_trajectory
+    from slam.trajectory_io import read_trajectory
 
     ref = read_trajectory(gt)
     ids = graph.node_ids
@@ -308,8 +310,8 @@ def loops_cmd(
 ) -> None:
     """Loop-closure precision (violated by ≤ 20 cm and ≤ 1° after optimisation); with --gt, precision and recall."""
     _check_json(json_out)
-    from evaluation.crosscheck import load_solution
     from evaluation.loops import loop_edges_from_graph, score_against_truth, score_loops
+    from slam.backends.crosscheck import load_solution
     from slam.graph import read_graph
 
     graph = read_graph(graph_path)
@@ -350,7 +352,7 @@ def crosscheck_cmd(
 ) -> None:
     """Both objectives (SE-Sync, GTSAM χ²) of two solutions and their pose differences, printed as JSON."""
     _check_json(json_out)
-    from evaluation.crosscheck import crosscheck, load_solution
+    from slam.backends.crosscheck import crosscheck, load_solution
     from slam.graph import read_graph
 
     graph = read_graph(graph_path)
@@ -371,13 +373,15 @@ def report_cmd(
     out: Path | None = typer.Option(None, "--out", help="Output folder (default: RESULT_DIR)."),
 ) -> None:
     """Write report.html (figures inline) and metrics.json; print the metrics as 'key: value' lines."""
-    from evaluation.report import flatten_metrics, write_report
+    from evaluation.report import flatten_metrics
+
+    from .report_io import write_run_report
 
     od = out if out is not None else result_dir
     for name in ("report.html", "metrics.json"):
         _check_json(od / name)
 
-    rep = write_report(result_dir, gt, relations, gt_map, out)
+    rep = write_run_report(result_dir, gt, relations, gt_map, out)
     for k, v in flatten_metrics(rep.metrics).items():
         typer.echo(f"{k}: {fmt_num(v)}")
     for n in rep.notes:

@@ -1,7 +1,7 @@
 """``slam loops LOG [--sweep NAME=start:stop:count ...]``: loop-closure precision/recall over a parameter grid.
 
 The front end runs once; loop detection, verification and the pose graph run once per setting
-(:mod:`evaluation.loop_sweep`). Writes ``loops.csv``, ``loops.json`` and ``pr.png`` into ``--out``.
+(:mod:`slam.pipeline.loop_sweep`). Writes ``loops.csv``, ``loops.json`` and ``pr.png`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -53,9 +53,9 @@ def loops(
     """Loop closure on LOG under each setting of a grid: precision/recall against ground truth (simulated
     logs) or Cartographer's 20 cm / 1° consistency after optimisation (real logs)."""
     from core.atomic import check_output_dir
-    from evaluation.loop_sweep import SWEEP_MARKER, parse_sweep, run_loop_sweep, sweep_grid, write_sweep
     from slam.cli.run_cmd import load_config
     from slam.logs import open_log
+    from slam.pipeline.loop_sweep import SWEEP_MARKER, parse_sweep, run_loop_sweep, sweep_grid, write_sweep
 
     # Everything the user typed is checked before any work (and before --out exists).
     sweeps = [parse_sweep(s) for s in sweep]

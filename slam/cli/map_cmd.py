@@ -38,7 +38,7 @@ def _poses_for(frames, source: str, max_dt: float):
         if not out:
             raise ConfigError(f"--poses {source}: the log has no {source.replace('_', ' ')} poses")
         return out
-    from slam.trajectory_io import read_tum
+    from core.trajectory import read_tum
 
     traj = read_tum(source)  # in stamp order
     st = traj.stamps

@@ -119,7 +119,7 @@ class GroundTruthRecorder:
 
     def trajectory(self, stamps: np.ndarray):  # type: ignore[no-untyped-def]
         """The recorded ground truth at the scans the run used (*stamps*, s), or None."""
-        from slam.trajectory_io import Trajectory
+        from core.trajectory import Trajectory
 
         if not self.stamps:
             return None
@@ -134,8 +134,8 @@ def write_evaluation(folder: Path, ref: Reference, recorder: GroundTruthRecorder
                      result_label: str) -> list[str]:
     """Write ``report.html`` and ``metrics.json`` (and ``ground_truth.tum``) into *folder*; return the
     headline lines to print (relation error mean ± std, APE RMSE, map AUC)."""
-    from evaluation.report import write_report
-    from slam.trajectory_io import write_tum
+    from .report_io import write_run_report
+    from core.trajectory import write_tum
 
     gt = ref.gt_file
     if ref.gt_in_frames and recorder is not None:
@@ -144,7 +144,7 @@ def write_evaluation(folder: Path, ref: Reference, recorder: GroundTruthRecorder
             gt = folder / "ground_truth.tum"
             write_tum(gt, traj)
     gt_map = ref.gt_map if (folder / "map.npz").exists() else None  # a run without a map (--map none)
-    rep = write_report(folder, gt, ref.relations, gt_map, folder, result_label=result_label)
+    rep = write_run_report(folder, gt, ref.relations, gt_map, folder, result_label=result_label)
     _require_measured(rep.metrics, ref, len(scan_stamps))
     quiet = ("not found", "no ground-truth trajectory")  # informational: what this run does not have
     return headline(rep.metrics) + [f"note: {n}" for n in rep.notes if not any(q in n for q in quiet)]

@@ -35,12 +35,13 @@ def simulate(
     """
     import time
 
+    from core import geometry as geo
     from core.atomic import check_output_file
     from core.errors import ConfigError
     from evaluation.sim import LASER_PRESETS, load_world
     from evaluation.sim.coverage import plan_space, scan_coverage, unreachable_space
-    from evaluation.sim.simulate import DEFAULT_ODOM_NOISE, map_paths, simulate as run_sim, write_simulated_log
-    from core import geometry as geo
+    from evaluation.sim.simulate import DEFAULT_ODOM_NOISE, simulate as run_sim
+    from slam.logs.simulated import map_paths, write_simulated_log
 
     for path in (out, *map_paths(out)):
         check_output_file(path)

@@ -46,7 +46,6 @@ def solve(
     from core.atomic import check_output_file
     from core.errors import ConfigError, GraphFormatError
     from slam.graph import GraphError, RobustKernel, read_graph, write_g2o
-    from slam.graph.connectivity import disconnection
     from slam.graph.costs import gtsam_error, sesync_objective
     from slam.graph.init import initial_poses
 
@@ -56,7 +55,7 @@ def solve(
     if robust != "none" and backend != "gtsam":
         raise ConfigError("--robust needs --backend gtsam (the chordal solver minimises the plain SE-Sync objective)")
     graph = read_graph(graph_path)
-    apart = disconnection(graph)
+    apart = graph.disconnection()
     if apart is not None:
         if not allow_disconnected:
             raise GraphFormatError(graph_path, None, f"{apart}; nothing places them relative to each other (give "

@@ -9,17 +9,12 @@ than that has parts whose relative placement nothing in the file determines.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import connected_components
 
-if TYPE_CHECKING:
-    from .posegraph import PoseGraph
-
-__all__ = ["component_labels", "free_component_anchors", "disconnection"]
+__all__ = ["component_labels", "free_component_anchors"]
 
 
 def component_labels(n: int, ii: NDArray[np.int64], jj: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -42,18 +37,3 @@ def free_component_anchors(labels: NDArray[np.int64], held: NDArray[np.int64]) -
     free[labels[held]] = False
     _, first = np.unique(labels, return_index=True)
     return np.sort(first[free]).astype(np.int64)
-
-
-def disconnection(graph: PoseGraph) -> str | None:
-    """Why the file leaves the relative placement of some components open, or None when it does not:
-    more than one component is free (no prior, no FIX), or one is free beside held ones."""
-    free = graph.free_anchor_indices()
-    held_elsewhere = bool(graph.fixed_ids) or "prior" in graph.edge_kinds
-    if len(free) <= (0 if held_elsewhere else 1):
-        return None
-    labels = graph.component_labels()
-    sizes = np.bincount(labels)
-    ids = ", ".join(str(int(v)) for v in graph.node_ids[free][:10]) + (", …" if len(free) > 10 else "")
-    shown = " and ".join(str(int(s)) for s in sizes[:10]) + (" …" if len(sizes) > 10 else "")
-    return (f"the graph is not connected: {len(sizes)} components ({shown} nodes), {len(free)} of them held by "
-            f"no prior or FIX (first nodes {ids})")

@@ -338,6 +338,19 @@ class PoseGraph:
         fixed = np.asarray([self.index_of(i) for i in self.fixed_ids], dtype=np.int64)
         return np.concatenate([fixed, self.free_anchor_indices()]) if self.num_nodes else fixed
 
+    def disconnection(self) -> str | None:
+        """Why the graph leaves the relative placement of some components open, or None when it does not:
+        more than one component is free (no prior, no FIX), or one is free beside held ones."""
+        free = self.free_anchor_indices()
+        held_elsewhere = bool(self.fixed_ids) or "prior" in self.edge_kinds
+        if len(free) <= (0 if held_elsewhere else 1):
+            return None
+        sizes = np.bincount(self.component_labels())
+        ids = ", ".join(str(int(v)) for v in self.node_ids[free][:10]) + (", …" if len(free) > 10 else "")
+        shown = " and ".join(str(int(s)) for s in sizes[:10]) + (" …" if len(sizes) > 10 else "")
+        return (f"the graph is not connected: {len(sizes)} components ({shown} nodes), {len(free)} of them held by "
+                f"no prior or FIX (first nodes {ids})")
+
     def _cached(self, key: str, fn):  # type: ignore[no-untyped-def]
         if key not in self._cache:
             self._cache[key] = fn()

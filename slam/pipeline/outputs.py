@@ -84,9 +84,9 @@ def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: Slam
     and may add or rewrite files there (a final ``summary.json``, an evaluation report): they
     are moved into *out_dir* together with the rest, or not at all.
     """
+    from core.trajectory import Trajectory, write_tum
     from mapping.occupancy_map import export_map
     from slam.graph.g2o import write_g2o
-    from slam.trajectory_io import Trajectory, write_tum
 
     out = Path(out_dir)
     with atomic_directory(out, RUN_MARKER) as tmp:

@@ -19,7 +19,9 @@ from numpy.typing import NDArray
 from core import geometry as geo
 from core.errors import GeometryError, GraphFormatError
 
-from .trajectory import umeyama
+from evaluation.trajectory import umeyama
+from slam.graph.costs import gtsam_error, sesync_objective
+from slam.trajectory_io import read_trajectory
 
 Array = NDArray[np.float64]
 
@@ -39,8 +41,6 @@ def pose_differences(A: Array, B: Array) -> dict[str, float]:
 
 
 def _objectives(graph, P: Array) -> dict[str, float | str]:
-    from slam.graph.costs import gtsam_error, sesync_objective
-
     out: dict[str, float | str] = {"sesync_objective": sesync_objective(graph, P)}
     try:
         g = gtsam_error(graph, P)
@@ -95,8 +95,6 @@ def load_solution(path: str | os.PathLike[str], graph) -> Array:
     A g2o file (vertices matched to the graph by id) or a TUM / KITTI file with one pose per node
     in node order (a TUM file's stamps give that order: its lines are read sorted by stamp).
     """
-    from slam.trajectory_io import read_trajectory
-
     p = Path(path)
     traj = read_trajectory(p)
     ids = graph.node_ids

@@ -31,9 +31,9 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from core.errors import ConfigError
-from slam.pipeline.config import LoopConfig, SlamConfig
+from evaluation.loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, score_against_truth, score_loops
 
-from .loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, score_against_truth, score_loops
+from .config import LoopConfig, SlamConfig
 
 M = TypeVar("M", bound=BaseModel)
 #: ``map_fn(fn, shared, items, on_done)`` → ``[fn(*shared, *item) for item in items]`` in item order, calling
@@ -191,7 +191,7 @@ def run_loop_sweep(
     The grid is validated before the log is read. *progress* is called with a one-line message after
     the front end and after each setting; *map_fn* runs the settings (:func:`sweep_recorded`).
     """
-    from slam.pipeline.loop_replay import record_front_end
+    from .loop_replay import record_front_end
 
     sweeps = list(sweeps)
     sweep_grid(config.loops, sweeps)
@@ -289,7 +289,7 @@ def score_setting(
     Returns the row (the swept values, then the columns of the module docstring) and, with *relations*,
     (relations used, relations in the file).
     """
-    from slam.pipeline.loop_replay import replay_loops
+    from .loop_replay import replay_loops
 
     gt_kf = rec.keyframe_ground_truth
     rep = replay_loops(rec, loop_cfg, backend)
@@ -308,9 +308,9 @@ def score_setting(
     row["time_s"] = rep.time_s
     used = None
     if relations is not None:
-        from slam.trajectory_io import Trajectory
+        from core.trajectory import Trajectory
 
-        from .relations import evaluate_relations
+        from evaluation.relations import evaluate_relations
 
         res = evaluate_relations(Trajectory(rec.stamps, rec.scan_poses(rep.keyframe_poses)), relations)
         row |= {"relation_trans_mean_m": res.trans_mean, "relation_rot_mean_deg": res.rot_mean_deg}
@@ -342,7 +342,7 @@ def write_sweep(out_dir, result: SweepResult, extra_meta: dict | None = None) ->
 
     from core.atomic import atomic_directory
 
-    from .plots import sweep_png
+    from evaluation.plots import sweep_png
 
     meta = result.meta | (extra_meta or {})
     with atomic_directory(out_dir, SWEEP_MARKER) as tmp:
