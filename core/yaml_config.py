@@ -8,19 +8,33 @@ from pydantic import BaseModel
 
 from .errors import ConfigError
 
-__all__ = ["load_yaml", "dump_yaml"]
+__all__ = ["load_yaml", "dump_yaml", "describe_validation_error"]
 
 
 def load_yaml(model: type[BaseModel], path: str | Path) -> BaseModel:
     """Load a config model from a YAML file (raises ConfigError naming the file)."""
     import yaml
 
+    from pydantic import ValidationError
+
     try:
         with open(path) as fh:
             data = yaml.safe_load(fh) or {}
         return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: {describe_validation_error(exc)}") from None
     except (OSError, yaml.YAMLError, ValueError) as exc:
         raise ConfigError(f"{path}: {exc}") from exc
+
+
+def describe_validation_error(exc) -> str:  # type: ignore[no-untyped-def]
+    """One line per pydantic ValidationError: ``a.b.c: what is wrong`` for each failing setting, joined by ``; ``
+    (a key the model does not have reads "unknown key")."""
+    parts = []
+    for e in exc.errors():
+        where = ".".join(map(str, e["loc"])) or "(top level)"
+        parts.append(f"{where}: {'unknown key' if e['type'] == 'extra_forbidden' else e['msg']}")
+    return "; ".join(parts)
 
 
 def dump_yaml(config: BaseModel, path: str | Path) -> None:

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 
-class GPConfig(BaseModel):
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")  # a misspelt key is an error, not a silent default
+
+
+class GPConfig(_Model):
     """GP kernel and hyperparameter policy (Yuan et al. 2018 §IV: Matérn ν = 7/2, fitted on frame 1)."""
 
     nu: float = 3.5
@@ -21,7 +25,7 @@ class GPConfig(BaseModel):
     fit_restarts: int = 1
 
 
-class FastGPOMConfig(BaseModel):
+class FastGPOMConfig(_Model):
     """Fast-GPOM (Yuan et al. 2018, Alg. 3)."""
 
     free_step: float | None = Field(None, description="d, spacing of free samples along a beam (m); None = resolution")
@@ -36,7 +40,7 @@ class FastGPOMConfig(BaseModel):
     exact_gp: bool = Field(False, description="one GP over all ring samples instead of the local blocks")
 
 
-class GPOMConfig(BaseModel):
+class GPOMConfig(_Model):
     """Classic GPOM (O'Callaghan & Ramos 2012; Yuan et al. 2018 Alg. 2)."""
 
     #: the exact GP costs O(n³ + n²·cells) per scan: every 12th beam and free samples every 0.3 m keep
@@ -46,7 +50,7 @@ class GPOMConfig(BaseModel):
     beam_stride: int = 12
 
 
-class LogOddsConfig(BaseModel):
+class LogOddsConfig(_Model):
     """Log-odds occupancy grid with an inverse sensor model (Thrun et al., Prob. Robotics §9.2)."""
 
     l_occ: float = 0.85
@@ -55,7 +59,7 @@ class LogOddsConfig(BaseModel):
     l_max: float = 5.0
 
 
-class MappingConfig(BaseModel):
+class MappingConfig(_Model):
     method: Literal["fastgpom", "gpom", "logodds"] = "fastgpom"
     resolution: float = 0.05
     #: probit squash p = Φ((αμ + β)/√(1 + α²σ²)) (Yuan et al. 2018 eq. 6)

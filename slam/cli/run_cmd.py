@@ -17,6 +17,7 @@ def load_config(config: Path | None, overrides: dict):  # type: ignore[no-untype
     from pydantic import ValidationError
 
     from core.errors import ConfigError
+    from core.yaml_config import describe_validation_error
     from slam.pipeline.config import SlamConfig
 
     cfg = SlamConfig.from_yaml(config) if config is not None else SlamConfig()
@@ -32,8 +33,7 @@ def load_config(config: Path | None, overrides: dict):  # type: ignore[no-untype
     try:
         return SlamConfig.model_validate(data)
     except ValidationError as exc:
-        what = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"invalid setting: {what}") from None
+        raise ConfigError(f"invalid setting: {describe_validation_error(exc)}") from None
 
 
 class OnError(str, Enum):
@@ -186,7 +186,8 @@ def _explain_no_scans(frames, log: Path, skipped) -> Iterator:  # type: ignore[n
 
 
 def run(
-    log: Path = typer.Argument(..., help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence."),
+    log: Path | None = typer.Argument(None, help="Robot log: CARMEN .clf/.log[.bz2|.gz], MCAP, ROS 1 bag or KITTI sequence.",
+                                      show_default=False),
     out: Path = typer.Option(Path("out/run"), "--out", help="Output folder (written atomically; an earlier run's "
                              "folder there is replaced whole)."),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration (see config.yaml of any run)."),
@@ -203,6 +204,9 @@ def run(
     gt: Path | None = typer.Option(None, "--gt", help="Ground-truth trajectory (TUM/KITTI, or a log with ground truth) "
                                    "to evaluate against (implies --eval)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+    print_config: bool = typer.Option(False, "--print-config", help="Print the whole configuration this run would use "
+                                      "(defaults, --config and the options above) as YAML, and exit; it reads back "
+                                      "with --config."),
 ) -> None:
     """Run SLAM on LOG: odometry, keyframes, verified loop closures, pose graph, Fast-GPOM map, all outputs."""
     from core.atomic import check_output_dir
@@ -216,6 +220,11 @@ def run(
         if map_method is not MapMethod.none:
             overrides["mapping.params.method"] = map_method.value
     cfg = load_config(config, overrides)
+    if print_config:
+        typer.echo(cfg.to_yaml(), nl=False)
+        return
+    if log is None:
+        raise typer.BadParameter("a log is needed (or --print-config)", param_hint="'LOG'")
     check_output_dir(out, RUN_MARKER)
     reference = None
     if evaluate or relations is not None or gt is not None:
