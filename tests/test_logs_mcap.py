@@ -12,14 +12,8 @@ from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import open_log
 from slam.logs.mcap_reader import McapReader
 from slam.logs.mcap_writer import McapLogWriter, write_cloud_log
-from slam.logs.ros_msgs import (
-    LASER_SCAN,
-    PoseTrack,
-    TfBuffer,
-    humble_typestore,
-    stamp_to_ns,
-    stamp_to_time,
-)
+from slam.logs.ros_msgs import LASER_SCAN, humble_typestore, stamp_to_ns, stamp_to_time
+from slam.logs.tf_buffer import PoseTrack, TfBuffer
 
 T = humble_typestore().types
 

@@ -10,7 +10,8 @@ import pytest
 from core.errors import LogFormatError
 from slam.logs.mcap_reader import McapReader
 from slam.logs.mcap_writer import McapLogWriter
-from slam.logs.ros_msgs import POINTCLOUD2, POINTFIELD_TYPES, decode_pointcloud2, humble_typestore
+from slam.logs.pointcloud2 import POINTFIELD_TYPES, decode_pointcloud2
+from slam.logs.ros_msgs import POINTCLOUD2, humble_typestore
 
 TS = humble_typestore()
 T = TS.types
@@ -136,7 +137,7 @@ def test_writer_reader_round_trip_bit_exact(tmp_path, rng):
     assert len(frames) == 1 and frames[0].stamp == 12.5 and frames[0].dim == 3
     keep = np.isfinite(pts).all(1)
     np.testing.assert_array_equal(frames[0].points, pts[keep].astype(np.float32).astype(np.float64))
-    from slam.logs.ros_msgs import pointcloud2_structured
+    from slam.logs.pointcloud2 import pointcloud2_structured
 
     r = McapReader(p)
     raw = next(r._raw_messages({"/points"}))

@@ -29,7 +29,8 @@ from core.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo, lost
 from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages, message_counts
-from .ros_msgs import RawMessage, RosLogReader, cached_typestore, normalize_msgtype
+from .ros_msgs import RawMessage, cached_typestore, normalize_msgtype
+from .ros_reader import RosLogReader
 
 __all__ = ["McapReader"]
 
@@ -47,7 +48,7 @@ def default_prefetch() -> int:
 
 
 class McapReader(RosLogReader):
-    """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_msgs.RosLogReader` for the arguments).
+    """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_reader.RosLogReader` for the arguments).
 
     Args:
         validate_crcs: check chunk CRCs (catches flipped bytes in uncompressed chunks).

@@ -31,18 +31,10 @@ from core import geometry as geo
 from core.atomic import atomic_path
 from core.errors import GeometryError
 
-from .ros_msgs import (
-    LASER_SCAN,
-    NUMPY_TO_POINTFIELD,
-    ODOMETRY,
-    POINTCLOUD2,
-    POSE_STAMPED,
-    TF_MESSAGE,
-    humble_typestore,
-    message_definition,
-    stamp_to_ns,
-    stamp_to_time,
-)
+from .pointcloud2 import NUMPY_TO_POINTFIELD
+
+from .ros_msgs import (LASER_SCAN, ODOMETRY, POINTCLOUD2, POSE_STAMPED, TF_MESSAGE, humble_typestore, message_definition,
+                       stamp_to_ns, stamp_to_time)
 
 if TYPE_CHECKING:
     from core.frame import Frame

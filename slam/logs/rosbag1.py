@@ -8,7 +8,7 @@ conversions to :class:`~core.frame.Frame` are shared with the MCAP reader
 
 Memory: rosbags keeps the bag's index (one small entry per message) in memory and one
 decompressed chunk at a time; the frame assembly itself is streaming (see
-:class:`~slam.logs.ros_msgs.RosLogReader`).
+:class:`~slam.logs.ros_reader.RosLogReader`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from typing import Any, Iterator
 from core.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo, lost
-from .ros_msgs import RawMessage, RosLogReader, build_typestore, normalize_msgtype
+from .ros_msgs import RawMessage, build_typestore, normalize_msgtype
+from .ros_reader import RosLogReader
 
 __all__ = ["Ros1BagReader"]
 
