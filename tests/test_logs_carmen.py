@@ -18,7 +18,8 @@ from core.errors import LogFormatError, TopicNotFoundError
 from core.frame import Frame
 from evaluation.relations import read_relations
 from slam.logs import open_log
-from slam.logs.carmen import DEFAULT_FLASER_MAX_RANGE, CarmenReader, detect_saturation, parse_laser_line
+from slam.logs.carmen import CarmenReader, detect_saturation
+from slam.logs.carmen_lines import DEFAULT_FLASER_MAX_RANGE, parse_laser_line
 from tests.conftest import DATA, shared_path
 
 INTEL = DATA / "intel.clf.bz2"
@@ -231,11 +232,11 @@ def test_compression_gives_identical_frames(tmp_path, comp):
 
 def test_long_lines_across_blocks(tmp_path, monkeypatch):
     """Lines that straddle block boundaries are reassembled (tiny blocks force many boundaries)."""
-    import slam.logs.carmen as carmen
+    import slam.logs.text_stream as text_stream
 
     lines = synthetic_log(np.random.default_rng(4), n_scans=25, n_beams=361)
     ref = list(CarmenReader(write_log(tmp_path / "a.clf", lines)).frames())
-    monkeypatch.setattr(carmen, "_BLOCK", 997)
+    monkeypatch.setattr(text_stream, "BLOCK_BYTES", 997)
     for comp in ("plain", "bz2"):
         got = list(CarmenReader(write_log(tmp_path / f"b.clf.{comp}", lines, comp)).frames())
         assert [g.source for g in got] == [r.source.replace("a.clf", f"b.clf.{comp}") for r in ref]
@@ -248,9 +249,9 @@ def test_block_path_equals_line_parser(tmp_path, monkeypatch, block):
     """The block-vectorised FLASER path gives exactly the frames of the one-line parser, also for
     zero readings (dropped beams) and for blocks that mix beam counts (small blocks: uniform
     ones and mixed ones; one big block: mixed)."""
-    import slam.logs.carmen as carmen
+    import slam.logs.text_stream as text_stream
 
-    monkeypatch.setattr(carmen, "_BLOCK", block)
+    monkeypatch.setattr(text_stream, "BLOCK_BYTES", block)
     rng = np.random.default_rng(8)
     lines = []
     for k in range(60):
@@ -274,7 +275,7 @@ def test_block_path_equals_line_parser(tmp_path, monkeypatch, block):
 
 def test_float_cache_is_bounded_and_exact():
     """The range-token cache returns exactly float(token) and never holds more than its limit."""
-    from slam.logs.carmen import _FloatCache
+    from slam.logs.carmen_lines import FloatCache as _FloatCache
 
     c = _FloatCache(limit=4)
     toks = [f"{v:.2f}".encode() for v in np.random.default_rng(9).uniform(0, 80, 50)]
