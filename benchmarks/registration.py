@@ -363,11 +363,11 @@ def bench_intel(n_pairs: int, reps: int) -> tuple[dict, list]:
 
 
 def bench_compiled_point_to_line(frames, n_pairs: int, reps: int, point_to_point: bool = False) -> dict:
-    """The compiled 2D point-to-line ICP (registration.kernels) against the same iterations in numpy:
+    """The compiled 2D point-to-line ICP (registration.kernels_icp) against the same iterations in numpy:
     scan k+1 onto the local map of scans k−3 … k (wheel-odometry placement), from the wheel guess,
     with the loop-closure settings (gates 1.0 / 0.4 / 0.15 m, Cauchy, 8-neighbour normals). Times
     are the best of *reps* calls, each including the target's construction (k-d tree or grid, normals).
-    *point_to_point*: the same for the SVD point-to-point ICP (kernels.point_icp_2d against icp()'s numpy
+    *point_to_point*: the same for the SVD point-to-point ICP (kernels_icp.point_icp_2d against icp()'s numpy
     iterations on the k-d tree)."""
     from registration import alignment
     from registration import point_to_plane as p2l

@@ -26,7 +26,7 @@ Array = NDArray[np.float64]
 __all__ = ["COMPILED_2D", "ROBUST_CODES", "IcpResult", "as_target", "evaluate_alignment", "evaluate_matches",
            "prepare", "robust_weights"]
 
-#: 2D alignments (without a prior) run the compiled iterations of registration.kernels; the numpy loops of
+#: 2D alignments (without a prior) run the compiled iterations of registration.kernels_icp; the numpy loops of
 #: registration.icp and registration.point_to_plane are the same algorithms, kept for 3D, for priors and as
 #: the reference the tests compare with.
 COMPILED_2D = True

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from core import geometry as G
 from core.errors import DegenerateInputError
 
-from . import kernels  # compiled loops: the per-point gathers are the search's whole cost
+from . import kernels_correlative as kernels  # compiled loops: the per-point gathers are the search's whole cost
 
 Array = NDArray[np.float64]
 
@@ -164,7 +164,7 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
     """Best ``target_T_scan`` within ±*window_m* (x and y) and ±*window_rad* of the planar 4×4 *guess*.
 
     Exact over the discretised window (:func:`search_grid`): depth-first branch and bound, children
-    best first (Hess et al. 2016, Algorithm 3), compiled (:func:`registration.kernels.branch_and_bound`);
+    best first (Hess et al. 2016, Algorithm 3), compiled (:func:`registration.kernels_correlative.branch_and_bound`);
     a block is expanded only when its max-pooled bound beats the best score found so far.
     *min_score* starts the bound there (Cartographer's ``min_score``, Hess et al. 2016 §V-C): blocks
     that cannot reach it are never expanded; when no pose in the window scores above it (nor the

@@ -154,13 +154,13 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
 
 
 def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
-    """The 2D iterations of :func:`icp`, compiled (:func:`registration.kernels.point_icp_2d`) on the target's
+    """The 2D iterations of :func:`icp`, compiled (:func:`registration.kernels_icp.point_icp_2d`) on the target's
     grid index, then the same evaluation."""
-    from . import kernels
+    from . import kernels_icp
 
     g = tgt.grid
     repeat_is_fixed_point = config.robust == "none" and config.tol_translation > 0 and config.tol_rotation > 0
-    R, t, it, converged, status, stage, matches, pairs = kernels.point_icp_2d(
+    R, t, it, converged, status, stage, matches, pairs = kernels_icp.point_icp_2d(
         np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
         config.max_iterations, config.tol_translation, config.tol_rotation, alignment.ROBUST_CODES[config.robust],
         config.robust_scale, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())

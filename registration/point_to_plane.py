@@ -110,11 +110,11 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
 
 
 def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
-    """The 2D iterations above, compiled (:func:`registration.kernels.plane_icp_2d`), then the same evaluation."""
-    from . import kernels
+    """The 2D iterations above, compiled (:func:`registration.kernels_icp.plane_icp_2d`), then the same evaluation."""
+    from . import kernels_icp
 
     g = tgt.grid
-    R, t, it, converged, status, stage, pairs = kernels.plane_icp_2d(
+    R, t, it, converged, status, stage, pairs = kernels_icp.plane_icp_2d(
         np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
         config.max_iterations, config.tol_translation, config.tol_rotation, alignment.ROBUST_CODES[config.robust],
         config.robust_scale, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),

@@ -81,7 +81,7 @@ class IcpTarget:
         self.workers = workers
         # Normals are computed on demand, point by point, and kept: an alignment needs them only at
         # the target points it matches (a scan against a ten-scan local map: about a tenth). The
-        # compiled 2D ICPs (registration.kernels) fills these two arrays in place.
+        # compiled 2D ICPs (registration.kernels_icp) fills these two arrays in place.
         self._normals = np.empty((len(self.points), self.dim))  # C order: the compiled kernels' layout
         self._have = np.zeros(len(self.points), dtype=bool)
         self._have_all = False

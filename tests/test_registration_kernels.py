@@ -57,7 +57,7 @@ def test_grid_search_is_exact_whatever_the_cell_size(cell):
 def test_a_grid_over_a_huge_span_coarsens_its_cells():
     P = np.array([[0.0, 0.0], [5000.0, 3.0], [2500.0, 1.0]])
     g = kernels.PointGrid(P, cell=0.25)
-    assert g.nx * g.ny <= kernels._MAX_CELLS + 2 * (g.nx + g.ny)
+    assert g.nx * g.ny <= kernels.MAX_CELLS + 2 * (g.nx + g.ny)
     assert kernels.nearest_within(np.array([[4999.0, 3.0]]), g.points, *g.args(), 2.0)[0] == 1
 
 
@@ -102,7 +102,7 @@ def _noisy_scan(seed: int):
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("loop, gates", [("plane", (1.0, 0.4, 0.15)), ("point", (0.5,)), ("point", (1.0, 0.4, 0.15))])
 def test_compiled_2d_icp_equals_the_numpy_loop(monkeypatch, robust, seed, loop, gates):
-    """The compiled 2D loops (kernels.plane_icp_2d, kernels.point_icp_2d) against the numpy iterations they
+    """The compiled 2D loops (registration.kernels_icp: plane_icp_2d, point_icp_2d) against the numpy iterations they
     replace: the same pose (to rounding, 1e-9 at least), iterations, convergence, inliers and covariance,
     from a start 0.3 m / 6° off, with 2 cm noise and 10 % outliers. The point-to-point loops run to the
     fixed point (tolerance 1e-10; unweighted they stop where the matches repeat)."""

@@ -1,0 +1,107 @@
+"""Compiled (numba) correlative scan matching: the score of rotated scans on a likelihood grid at many offsets,
+and the depth-first branch and bound over a grid pyramid (Olson 2009; Hess et al. 2016, Algorithm 3), the loop
+forms of :mod:`registration.correlative`'s numpy search."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["score_candidates", "branch_and_bound"]
+
+
+@njit(cache=True, inline="always")
+def _score_at(grid, cells, r, ox, oy):  # pragma: no cover - compiled
+    """One candidate of :func:`score_candidates`: rotation index *r*, cell offset (*ox*, *oy*)."""
+    H, W = grid.shape
+    n = cells.shape[1]
+    acc = 0
+    for p in range(n):
+        i = min(max(cells[r, p, 0] + ox, 0), H - 1)
+        j = min(max(cells[r, p, 1] + oy, 0), W - 1)
+        acc += grid[i, j]
+    return float(acc) / n / 255.0
+
+
+@njit(cache=True)
+def score_candidates(grid, cells, rot, offsets):  # pragma: no cover - compiled
+    """Correlative scores of ``registration.correlative.LikelihoodPyramid.score_candidates``: for each
+    candidate c the mean over the scan's points of the uint8 *grid* at ``cells[rot[c]] + offsets[c]``
+    (indices clipped to the grid) divided by 255, summed exactly in integers."""
+    out = np.empty(rot.shape[0])
+    for c in range(rot.shape[0]):
+        out[c] = _score_at(grid, cells, rot[c], offsets[c, 0], offsets[c, 1])
+    return out
+
+
+@njit(cache=True)
+def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
+                     ex_r, ex_x, ex_y, ex_dr, ex_dxy):  # pragma: no cover - compiled
+    """Depth-first branch and bound of ``registration.correlative.match`` (Hess et al. 2016, Algorithm 3).
+
+    *grids* ``(L, H, W)`` uint8: the pyramid's max-pooled levels; *cells* ``(R, N, 2)``: the scan's
+    cells at each of R rotations. Candidates are (rotation, offset) with offsets in [−w, w]² cells:
+    level-*top* blocks of 2^top × 2^top offsets from −w, each split into its four children down to
+    level 0 (single offsets). Children are visited best first, so the first leaves reached are good
+    and the bound prunes the rest; a block is expanded only when its bound (the max-pooled score)
+    exceeds *best*. Returns the best (score, rotation, ox, oy) strictly above the starting *best*,
+    or the starting values when nothing in the window beats it. With *ex_dxy* ≥ 0 the candidates within
+    *ex_dr* rotations and *ex_dxy* cells (in x and in y) of (*ex_r*, *ex_x*, *ex_y*) are excluded: the
+    best pose elsewhere, for the uniqueness test of a match (blocks wholly inside are skipped)."""
+    R = cells.shape[0]
+    h = 1 << top
+    ng = (2 * w) // h + 1
+    m = R * ng * ng
+    cap = m + 4 * (top + 1)
+    s_lv = np.empty(cap, np.int64)
+    s_r = np.empty(cap, np.int64)
+    s_x = np.empty(cap, np.int64)
+    s_y = np.empty(cap, np.int64)
+    s_b = np.empty(cap)
+    top_b = np.empty(m)
+    for r in range(R):
+        for a in range(ng):
+            for b in range(ng):
+                top_b[(r * ng + a) * ng + b] = _score_at(grids[top], cells, r, -w + a * h, -w + b * h)
+    sp = 0
+    for c in np.argsort(top_b, kind="mergesort"):  # ascending: the best block is popped first
+        if top_b[c] > best:
+            r, rest = c // (ng * ng), c % (ng * ng)
+            s_lv[sp], s_r[sp], s_x[sp], s_y[sp], s_b[sp] = top, r, -w + (rest // ng) * h, -w + (rest % ng) * h, top_b[c]
+            sp += 1
+    cb = np.empty(4)
+    cx = np.empty(4, np.int64)
+    cy = np.empty(4, np.int64)
+    while sp > 0:
+        sp -= 1
+        lv, r, x, y, bound = s_lv[sp], s_r[sp], s_x[sp], s_y[sp], s_b[sp]
+        if bound <= best:
+            continue
+        if ex_dxy >= 0 and abs(r - ex_r) <= ex_dr:
+            span = (1 << lv) - 1
+            if x >= ex_x - ex_dxy and x + span <= ex_x + ex_dxy and y >= ex_y - ex_dxy and y + span <= ex_y + ex_dxy:
+                continue  # every candidate of the block is excluded
+        if lv == 0:
+            best, best_rot, best_ox, best_oy = bound, r, x, y
+            continue
+        half = 1 << (lv - 1)
+        k = 0
+        for dx in range(2):
+            for dy in range(2):
+                x2, y2 = x + dx * half, y + dy * half
+                if x2 > w or y2 > w:
+                    continue
+                sc = _score_at(grids[lv - 1], cells, r, x2, y2)
+                if sc <= best:
+                    continue
+                # insertion into cb[:k], ascending
+                q = k
+                while q > 0 and cb[q - 1] > sc:
+                    cb[q], cx[q], cy[q] = cb[q - 1], cx[q - 1], cy[q - 1]
+                    q -= 1
+                cb[q], cx[q], cy[q] = sc, x2, y2
+                k += 1
+        for q in range(k):
+            s_lv[sp], s_r[sp], s_x[sp], s_y[sp], s_b[sp] = lv - 1, r, cx[q], cy[q], cb[q]
+            sp += 1
+    return best, best_rot, best_ox, best_oy
