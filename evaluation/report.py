@@ -14,8 +14,6 @@ Writes ``report.html`` (every figure inline as a base64 PNG, no external files) 
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import math
 import os
@@ -31,21 +29,15 @@ from core.atomic import atomic_open
 from core.errors import GpslamError, InputFileError, MapFormatError
 from core.trajectory import Trajectory
 
+from .report_figures import Figure, closing_figures, trajectory_figures
+from .report_html import page
+
 Array = NDArray[np.float64]
 
 __all__ = ["Figure", "Report", "build_report", "write_report", "flatten_metrics", "resample_classes", "RUN_FILES"]
 
 #: The files of a ``slam run`` folder the report reads; a folder with none of them is not a run's.
 RUN_FILES = ("trajectory.tum", "odometry.tum", "graph.g2o", "map.npz", "summary.json")
-
-
-@dataclass
-class Figure:
-    """One report figure: title, PNG bytes and a one-line caption."""
-
-    title: str
-    png: bytes
-    caption: str = ""
 
 
 @dataclass
@@ -170,118 +162,152 @@ def build_report(
     *result_label* is how the report names the result folder (default: *result_dir*), e.g. the
     final folder when the report is written into a temporary one that is moved there afterwards.
     """
-    from core.trajectory import read_tum
-
-    from . import plots
-    from .ape_rpe import evaluate_ape, evaluate_rpe
-
     rd = Path(result_dir)
     if not rd.is_dir():
         raise InputFileError(rd, None, "result folder does not exist")
     if not any((rd / name).is_file() for name in RUN_FILES):
         raise InputFileError(rd, None, f"has none of the files of a run ({', '.join(RUN_FILES)}): nothing to report")
     rep = Report()
-    m = rep.metrics
-    m["result_dir"] = str(rd) if result_label is None else result_label
+    rep.metrics["result_dir"] = str(rd) if result_label is None else result_label
+    trajs = _trajectories(rd, rep)
+    truth = _against_ground_truth(trajs, gt, max_diff, rep)
+    rel_series = _against_relations(trajs, relations, rep)
+    loops_xy = _graph_and_loops(rd, graph, trajs, gt, max_diff, rep)
+    mp, gt_bg = _map_and_roc(rd, gt_map, truth.gt_T_map, rep)
+    _summary(rd, rep)
+    rep.figures = (trajectory_figures(trajs, gt, truth.aligned_paths, truth.ape_series, rel_series, loops_xy, mp, gt_bg)
+                   + rep.figures + closing_figures(mp, rep.metrics.get("timings_s")))
+    rep.metrics = _clean(rep.metrics)
+    return rep
+
+
+def _trajectories(rd: Path, rep: Report) -> dict[str, Trajectory]:
+    """The run's estimate and odometry (``trajectory.tum``, ``odometry.tum``) with their sizes."""
+    from core.trajectory import read_tum
 
     trajs: dict[str, Any] = {}
     for label, name in (("estimate", "trajectory.tum"), ("odometry", "odometry.tum")):
         if (rd / name).exists():
             t = read_tum(rd / name)
             trajs[label] = t
-            m.setdefault("trajectories", {})[label] = {
+            rep.metrics.setdefault("trajectories", {})[label] = {
                 "poses": len(t), "duration_s": float(t.stamps[-1] - t.stamps[0]) if len(t) else 0.0,
                 "path_length_m": t.path_length(),
             }
         else:
             rep.notes.append(f"{name} not found")
+    return trajs
 
-    # --- ground truth: APE / RPE
-    gt_traj = gt
-    aligned_paths: dict[str, Array] = {}
-    gt_T_map: Array | None = None
-    ape_series: dict[str, tuple[Array, Array]] = {}
-    if gt_traj is not None:
-        aligned_paths["ground truth"] = gt_traj.positions
-        for label, t in trajs.items():
-            try:
-                a = evaluate_ape(t, gt_traj, align="se3", max_diff=max_diff)
-                r = evaluate_rpe(t, gt_traj, delta=1, delta_unit="frames", max_diff=max_diff)
-            except GpslamError as exc:  # e.g. no common stamps: report it, keep the rest of the report
-                rep.notes.append(f"{label}: APE/RPE not computed: {exc}")
-                continue
-            m.setdefault("ape_trans_m", {})[label] = {k: a.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": a.n_matched}
-            m.setdefault("rpe_trans_m", {})[label] = {k: r.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": len(r.errors)}
-            ape_series[label] = (a.stamps, a.errors)
-            if a.est_aligned is None or a.alignment is None:
-                continue
-            aligned_paths[label] = a.est_aligned.positions
-            if label == "estimate":
-                gt_T_map = a.alignment.transform
-    else:
+
+@dataclass
+class _Truth:
+    """What the comparison with the ground-truth trajectory leaves for the figures and the map."""
+
+    aligned_paths: dict[str, Array]  # positions in the ground-truth frame (or the map frame without one)
+    gt_T_map: Array | None  # the estimate's alignment onto the ground truth
+    ape_series: dict[str, tuple[Array, Array]]  # stamps, APE per trajectory
+
+
+def _against_ground_truth(trajs: dict[str, Trajectory], gt: Trajectory | None, max_diff: float, rep: Report) -> _Truth:
+    """APE (SE(d)-aligned) and RPE over one frame of every trajectory against *gt*."""
+    from .ape_rpe import evaluate_ape, evaluate_rpe
+
+    m = rep.metrics
+    out = _Truth({}, None, {})
+    if gt is None:
         rep.notes.append("no ground-truth trajectory (--gt): APE/RPE not computed")
-        aligned_paths = {k: v.positions for k, v in trajs.items()}
+        out.aligned_paths = {k: v.positions for k, v in trajs.items()}
+        return out
+    out.aligned_paths["ground truth"] = gt.positions
+    for label, t in trajs.items():
+        try:
+            a = evaluate_ape(t, gt, align="se3", max_diff=max_diff)
+            r = evaluate_rpe(t, gt, delta=1, delta_unit="frames", max_diff=max_diff)
+        except GpslamError as exc:  # e.g. no common stamps: report it, keep the rest of the report
+            rep.notes.append(f"{label}: APE/RPE not computed: {exc}")
+            continue
+        m.setdefault("ape_trans_m", {})[label] = {k: a.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": a.n_matched}
+        m.setdefault("rpe_trans_m", {})[label] = {k: r.stats[k] for k in ("rmse", "mean", "median", "max")} | {"pairs": len(r.errors)}
+        out.ape_series[label] = (a.stamps, a.errors)
+        if a.est_aligned is None or a.alignment is None:
+            continue
+        out.aligned_paths[label] = a.est_aligned.positions
+        if label == "estimate":
+            out.gt_T_map = a.alignment.transform
+    return out
 
-    # --- relations
+
+def _against_relations(trajs: dict[str, Trajectory], relations: str | os.PathLike[str] | None,
+                       rep: Report) -> dict[str, tuple[Array, Array]]:
+    """The Kümmerle relation error of every trajectory, the published figures beside it; the error series."""
     rel_series: dict[str, tuple[Array, Array]] = {}
-    if relations is not None:
-        from .published import PUBLISHED, recognise_dataset
-        from .relations import evaluate_relations, read_relations
+    if relations is None:
+        return rel_series
+    from .published import LOOP_PRECISION, PUBLISHED, recognise_dataset
+    from .relations import evaluate_relations, read_relations
 
-        rel = read_relations(relations)
-        ds = recognise_dataset(relations)
-        m["relations"] = {"file": str(relations), "dataset": ds or "unknown"}
-        for label, t in trajs.items():
-            res = evaluate_relations(t, rel)
-            m["relations"][label] = res.to_dict()
-            if res.n_used:
-                rel_series[label] = (rel.t2[res.used], res.trans_errors)
-            else:  # e.g. a run over the first scans of a log only
-                rep.notes.append(f"{label}: none of the {len(rel)} relations joins two scans of the trajectory")
-        if ds:
-            m["relations"]["published"] = {
-                meth: {k: {"mean": v[0], "std": v[1]} for k, v in vals.items()} for meth, vals in PUBLISHED[ds].items()
-            }
-            from .published import LOOP_PRECISION
+    m = rep.metrics
+    rel = read_relations(relations)
+    ds = recognise_dataset(relations)
+    m["relations"] = {"file": str(relations), "dataset": ds or "unknown"}
+    for label, t in trajs.items():
+        res = evaluate_relations(t, rel)
+        m["relations"][label] = res.to_dict()
+        if res.n_used:
+            rel_series[label] = (rel.t2[res.used], res.trans_errors)
+        else:  # e.g. a run over the first scans of a log only
+            rep.notes.append(f"{label}: none of the {len(rel)} relations joins two scans of the trajectory")
+    if ds:
+        m["relations"]["published"] = {
+            meth: {k: {"mean": v[0], "std": v[1]} for k, v in vals.items()} for meth, vals in PUBLISHED[ds].items()
+        }
+        n_c, prec = LOOP_PRECISION[ds]
+        m["relations"]["published"]["cartographer_loop_precision"] = prec
+        m["relations"]["published"]["cartographer_loop_constraints"] = n_c
+    return rel_series
 
-            n_c, prec = LOOP_PRECISION[ds]
-            m["relations"]["published"]["cartographer_loop_precision"] = prec
-            m["relations"]["published"]["cartographer_loop_constraints"] = n_c
 
-    # --- graph and loops
-    loops_xy: Array | None = None
-    if graph is not None:
-        from .loops import loop_edges_from_graph, score_against_truth, score_loops
-
-        kinds = graph.edge_kinds
-        m["graph"] = {"nodes": graph.num_nodes, "edges": graph.num_edges,
-                      "odometry_edges": kinds.count("odometry"), "loop_edges": kinds.count("loop")}
-        loops = loop_edges_from_graph(graph)
-        if graph.has_initial_guess:
-            s = score_loops(loops, graph.poses)
-            m["loops"] = s.to_dict()
-            P = graph.poses
-            loops_xy = np.stack([P[loops.ii, :2, 3], P[loops.jj, :2, 3]], axis=1) if len(loops) else None
-            if gt_traj is not None:
-                st = _node_stamps(rd, graph, trajs.get("estimate"))
-                if st is None:
-                    rep.notes.append("graph nodes could not be tied to scan stamps (no node_stamps.txt and vertex poses "
-                                     "not found in trajectory.tum): loop recall not computed")
-                else:
-                    from .trajectory import nearest_indices
-
-                    a_idx, b_idx = nearest_indices(st, gt_traj.stamps, max_diff)
-                    if len(a_idx) == len(st):
-                        t_score = score_against_truth(loops, gt_traj.poses[b_idx])
-                        m["loops_vs_truth"] = t_score.to_dict()
-                    else:
-                        rep.notes.append("some graph nodes have no ground-truth pose: loop recall not computed")
-        else:
-            rep.notes.append("graph.g2o has no vertex poses: loop precision not computed")
-    else:
+def _graph_and_loops(rd: Path, graph, trajs: dict[str, Trajectory], gt: Trajectory | None,  # type: ignore[no-untyped-def]
+                     max_diff: float, rep: Report) -> Array | None:
+    """Graph sizes, loop-closure precision (and, with ground truth, recall); the loop edges' end points."""
+    if graph is None:
         rep.notes.append("graph.g2o not found" if not (rd / "graph.g2o").exists() else "graph.g2o not read")
+        return None
+    from .loops import loop_edges_from_graph, score_against_truth, score_loops
 
-    # --- map and ROC
+    m = rep.metrics
+    kinds = graph.edge_kinds
+    m["graph"] = {"nodes": graph.num_nodes, "edges": graph.num_edges,
+                  "odometry_edges": kinds.count("odometry"), "loop_edges": kinds.count("loop")}
+    loops = loop_edges_from_graph(graph)
+    if not graph.has_initial_guess:
+        rep.notes.append("graph.g2o has no vertex poses: loop precision not computed")
+        return None
+    m["loops"] = score_loops(loops, graph.poses).to_dict()
+    P = graph.poses
+    loops_xy = np.stack([P[loops.ii, :2, 3], P[loops.jj, :2, 3]], axis=1) if len(loops) else None
+    if gt is not None:
+        st = _node_stamps(rd, graph, trajs.get("estimate"))
+        if st is None:
+            rep.notes.append("graph nodes could not be tied to scan stamps (no node_stamps.txt and vertex poses "
+                             "not found in trajectory.tum): loop recall not computed")
+        else:
+            from .trajectory import nearest_indices
+
+            a_idx, b_idx = nearest_indices(st, gt.stamps, max_diff)
+            if len(a_idx) == len(st):
+                m["loops_vs_truth"] = score_against_truth(loops, gt.poses[b_idx]).to_dict()
+            else:
+                rep.notes.append("some graph nodes have no ground-truth pose: loop recall not computed")
+    return loops_xy
+
+
+def _map_and_roc(rd: Path, gt_map: str | os.PathLike[str] | None, gt_T_map: Array | None,
+                 rep: Report) -> tuple[dict[str, Any] | None, tuple[Array, float, Array] | None]:
+    """The map's size and, against a ground-truth map, its ROC/AUC; the map and the ground truth's image."""
+    from . import plots
+
+    m = rep.metrics
     mp = None
     gt_bg: tuple[Array, float, Array] | None = None
     if gt_map is not None:
@@ -291,163 +317,60 @@ def build_report(
         gcls = np.asarray(gmap.classes)
         gt_bg = (np.where(gcls == -1, np.nan, np.clip(gcls, 0, 100) / 100.0), float(gmap.resolution),
                  np.asarray(gmap.origin, float))
-    if (rd / "map.npz").exists():
-        mp = _load_map(rd / "map.npz")
-        prob = np.asarray(mp["probability"], float)
-        res_m = float(np.asarray(mp["resolution"]).reshape(-1)[0])
-        origin = np.asarray(mp["origin"], float).reshape(-1)
-        m["map"] = {"rows": int(prob.shape[0]), "cols": int(prob.shape[1]), "resolution_m": res_m}
-        if gt_map is not None:
-            from mapping.roc import map_roc
-
-            cls = resample_classes(gmap.classes, gmap.resolution, gmap.origin, prob.shape, res_m, origin, gt_T_map)
-            try:
-                fpr, tpr, auc = map_roc(prob, cls)
-                m["map"]["auc"] = auc
-                m["map"]["gt_cells_compared"] = int(np.sum((cls != -1) & np.isfinite(prob)))
-                m["map"]["gt_frame"] = "aligned by the trajectory's SE(d) Umeyama fit" if gt_T_map is not None else "map frame"
-                rep.figures.append(Figure("Map ROC", plots.roc_png({"map": (fpr, tpr, auc)}),
-                                          "Occupancy probability of each map cell scored against the ground-truth map "
-                                          "(unknown ground-truth cells ignored)."))
-            except GpslamError as exc:
-                rep.notes.append(f"map ROC not computed: {exc}")
-    else:
+    if not (rd / "map.npz").exists():
         rep.notes.append("map.npz not found")
         if gt_map is not None:
             rep.notes.append("--gt-map given but there is no map.npz: ROC not computed")
+        return mp, gt_bg
+    mp = _load_map(rd / "map.npz")
+    prob = np.asarray(mp["probability"], float)
+    res_m = float(np.asarray(mp["resolution"]).reshape(-1)[0])
+    origin = np.asarray(mp["origin"], float).reshape(-1)
+    m["map"] = {"rows": int(prob.shape[0]), "cols": int(prob.shape[1]), "resolution_m": res_m}
+    if gt_map is not None:
+        from mapping.roc import map_roc
 
-    # --- timings
-    if (rd / "summary.json").exists():
+        cls = resample_classes(gmap.classes, gmap.resolution, gmap.origin, prob.shape, res_m, origin, gt_T_map)
         try:
-            summary = json.loads((rd / "summary.json").read_text())
-        except json.JSONDecodeError as exc:
-            raise MapFormatError(rd / "summary.json", f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
-        tm = _timings(summary) if isinstance(summary, dict) else {}
-        counts = {k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
-                  and not k.endswith("_time_s")} if isinstance(summary, dict) else {}
-        if counts:
-            m["summary"] = counts  # top-level numbers of summary.json (scan, keyframe, loop counts ...)
-        pruned = (summary.get("loop_stats") or {}).get("pruned") if isinstance(summary, dict) else None
-        if "loops" in m and isinstance(pruned, int) and pruned >= 0:
-            # graph.g2o holds only the closures the back end kept; the ones it pruned (violated by more
-            # than its thresholds, by default Cartographer's 20 cm / 1°) count against the verifier.
-            lp = m["loops"]
-            lp["pruned_by_back_end"] = pruned
-            total = lp["n_loops"] + pruned
-            lp["precision_counting_pruned"] = lp["n_correct"] / total if total else float("nan")
-        if tm:
-            m["timings_s"] = tm
-        else:
-            rep.notes.append("summary.json has no stage timings")
-    else:
+            fpr, tpr, auc = map_roc(prob, cls)
+            m["map"]["auc"] = auc
+            m["map"]["gt_cells_compared"] = int(np.sum((cls != -1) & np.isfinite(prob)))
+            m["map"]["gt_frame"] = "aligned by the trajectory's SE(d) Umeyama fit" if gt_T_map is not None else "map frame"
+            rep.figures.append(Figure("Map ROC", plots.roc_png({"map": (fpr, tpr, auc)}),
+                                      "Occupancy probability of each map cell scored against the ground-truth map "
+                                      "(unknown ground-truth cells ignored)."))
+        except GpslamError as exc:
+            rep.notes.append(f"map ROC not computed: {exc}")
+    return mp, gt_bg
+
+
+def _summary(rd: Path, rep: Report) -> None:
+    """Counts and stage timings of ``summary.json``; the closures the back end pruned count against precision."""
+    m = rep.metrics
+    if not (rd / "summary.json").exists():
         rep.notes.append("summary.json not found")
-
-    # --- figures (trajectory first)
-    figs: list[Figure] = []
-    if aligned_paths:
-        if gt_traj is not None:
-            bg = gt_bg if gt_bg is not None else (None, None, None)
-            figs.append(Figure(
-                "Trajectories in the ground-truth frame",
-                plots.trajectory_map_png(aligned_paths, *bg, None, "Trajectories aligned to the ground truth",
-                                         bg_label="ground-truth occupancy"),
-                "Estimated and odometry trajectories after SE(d) Umeyama alignment to the ground truth"
-                + (", over the ground-truth map." if gt_bg is not None else "."),
-            ))
-        if mp is not None or gt_traj is None:
-            figs.append(Figure(
-                "Trajectory over the map",
-                plots.trajectory_map_png(
-                    {k: v.positions for k, v in trajs.items()},
-                    None if mp is None else np.asarray(mp["probability"], float),
-                    None if mp is None else float(np.asarray(mp["resolution"]).reshape(-1)[0]),
-                    None if mp is None else np.asarray(mp["origin"], float).reshape(-1),
-                    loops_xy, "Trajectory over the occupancy map" if mp is not None else "Trajectory"),
-                "Optimised trajectory, odometry and loop closures (green) in the map frame"
-                + (", over the occupancy probability." if mp is not None else "."),
-            ))
-    if ape_series:
-        figs.append(Figure("Error along the trajectory",
-                           plots.error_along_png(ape_series, "APE translation [m]", "Absolute position error (SE(d)-aligned)"),
-                           "Translational APE of each pose against the ground truth."))
-    elif rel_series:
-        figs.append(Figure("Relation error along the trajectory",
-                           plots.error_along_png(rel_series, "relation translation error [m]", "Kümmerle relation error",
-                                                 points=True),
-                           "Translational error of each ground-truth relation, at the stamp of its second scan."))
-    rep.figures = figs + rep.figures
-    if mp is not None and "variance" in mp:
-        rep.figures.append(Figure("Map variance", plots.map_png(np.asarray(mp["variance"], float),
-                                                                float(np.asarray(mp["resolution"]).reshape(-1)[0]),
-                                                                np.asarray(mp["origin"], float).reshape(-1),
-                                                                "GP predictive variance (unitless)", "Map variance"),
-                                  "Predictive variance of the Gaussian-process map (low = confident)."))
-    if "timings_s" in m:
-        rep.figures.append(Figure("Stage timings", plots.timings_png(m["timings_s"]), "Wall-clock time per pipeline stage."))
-    rep.metrics = _clean(m)
-    return rep
-
-
-def _relations_html(rel: dict[str, Any] | None) -> str:
-    """Side-by-side table: our relation metric per trajectory vs the published numbers (mean ± std)."""
-    if not rel:
-        return ""
-    from .published import METRIC_KEYS
-
-    units = {"trans": "m", "trans_sq": "m²", "rot": "deg", "rot_sq": "deg²"}
-    pub = rel.get("published") or {}
-    cols = [k for k in ("estimate", "odometry") if k in rel]
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
-    head += "".join(f"<th>{n}</th>" for k, n in (("cartographer", "Cartographer"), ("graph_mapping", "Graph Mapping")) if k in pub)
-    body = []
-    for key, (label, m_attr, s_attr) in METRIC_KEYS.items():
-        cells = []
-        for c in cols:
-            mv, sv = rel[c].get(m_attr), rel[c].get(s_attr)
-            cells.append("<td>–</td>" if mv is None else f"<td>{mv:.4g} ± {sv:.4g}</td>")
-        for meth in ("cartographer", "graph_mapping"):
-            if meth in pub:
-                cells.append(f"<td>{pub[meth][key]['mean']:g} ± {pub[meth][key]['std']:g}</td>")
-        body.append(f"<tr><td>{html.escape(label)} [{units[key]}]</td>{''.join(cells)}</tr>")
-    missing = ", ".join(f"{c}: {rel[c].get('n_missing')} of {rel[c].get('n_used', 0) + rel[c].get('n_missing', 0)}" for c in cols)
-    return (f"<h2>Kümmerle relation metric ({html.escape(str(rel.get('dataset')))})</h2>"
-            f"<table><tr><th>metric</th>{head}</tr>{''.join(body)}</table>"
-            f"<p>Relations without a matching stamp (not used): {html.escape(missing)}.</p>")
-
-
-def _html(rep: Report) -> str:
-    flat = flatten_metrics(rep.metrics)
-    rows = "\n".join(
-        f"<tr><td>{html.escape(k)}</td><td>{html.escape(v if isinstance(v, str) else f'{v:.6g}' if isinstance(v, float) else str(v))}</td></tr>"
-        for k, v in flat.items()
-    )
-    figs = "\n".join(
-        f'<figure><h2>{html.escape(f.title)}</h2><img alt="{html.escape(f.title)}" '
-        f'src="data:image/png;base64,{base64.b64encode(f.png).decode("ascii")}"/>'
-        f"<figcaption>{html.escape(f.caption)}</figcaption></figure>"
-        for f in rep.figures
-    )
-    notes = "".join(f"<li>{html.escape(n)}</li>" for n in rep.notes)
-    rel_table = _relations_html(rep.metrics.get("relations"))
-    return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>gpslam report</title>
-<style>
-body {{ font-family: sans-serif; max-width: 1000px; margin: 2em auto; color: #222; }}
-table {{ border-collapse: collapse; font-size: 0.9em; margin-bottom: 1em; }}
-td, th {{ border-bottom: 1px solid #ddd; padding: 2px 12px 2px 2px; font-family: monospace; text-align: left; }}
-figure {{ margin: 2em 0; }} img {{ max-width: 100%; }} figcaption {{ color: #555; }}
-</style></head><body>
-<h1>gpslam evaluation report</h1>
-<p>Result folder: <code>{html.escape(str(rep.metrics.get("result_dir", "")))}</code></p>
-{f"<h2>Notes</h2><ul>{notes}</ul>" if notes else ""}
-{rel_table}
-<h2>All metrics</h2>
-<table>
-{rows}
-</table>
-{figs}
-</body></html>
-"""
+        return
+    try:
+        summary = json.loads((rd / "summary.json").read_text())
+    except json.JSONDecodeError as exc:
+        raise MapFormatError(rd / "summary.json", f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
+    tm = _timings(summary) if isinstance(summary, dict) else {}
+    counts = {k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+              and not k.endswith("_time_s")} if isinstance(summary, dict) else {}
+    if counts:
+        m["summary"] = counts  # top-level numbers of summary.json (scan, keyframe, loop counts ...)
+    pruned = (summary.get("loop_stats") or {}).get("pruned") if isinstance(summary, dict) else None
+    if "loops" in m and isinstance(pruned, int) and pruned >= 0:
+        # graph.g2o holds only the closures the back end kept; the ones it pruned (violated by more
+        # than its thresholds, by default Cartographer's 20 cm / 1°) count against the verifier.
+        lp = m["loops"]
+        lp["pruned_by_back_end"] = pruned
+        total = lp["n_loops"] + pruned
+        lp["precision_counting_pruned"] = lp["n_correct"] / total if total else float("nan")
+    if tm:
+        m["timings_s"] = tm
+    else:
+        rep.notes.append("summary.json has no stage timings")
 
 
 def write_report(
@@ -467,5 +390,5 @@ def write_report(
         json.dump(rep.metrics, fh, indent=2)
         fh.write("\n")
     with atomic_open(od / "report.html", "w", encoding="utf-8") as fh:
-        fh.write(_html(rep))
+        fh.write(page(rep.metrics, flatten_metrics(rep.metrics), rep.figures, rep.notes))
     return rep
