@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core import geometry as geo
+from core import pose_formats
 from core.atomic import atomic_open
 from core.errors import GeometryError, LogFormatError
 from core.numbers import c_floats, c_int
@@ -164,13 +165,13 @@ def read_tum(path: PathLike) -> Trajectory:
             raise LogFormatError(p, f"line {lineno}", "zero quaternion")
         rows.append(vals)
     data = np.array(rows, dtype=np.float64).reshape(-1, 8)
-    poses = geo.pose_from_quat(data[:, 1:4], data[:, 4:8]) if len(data) else np.zeros((0, 4, 4))
+    poses = pose_formats.pose_from_quat(data[:, 1:4], data[:, 4:8]) if len(data) else np.zeros((0, 4, 4))
     return Trajectory(data[:, 0], poses, p.name).sorted_by_stamp()
 
 
 def write_tum(path: PathLike, trajectory: Trajectory) -> None:
     """Write *trajectory* as TUM lines with ``repr``-exact numbers (atomically)."""
-    t, q = geo.pose_to_quat(trajectory.poses) if len(trajectory) else (np.zeros((0, 3)), np.zeros((0, 4)))
+    t, q = pose_formats.pose_to_quat(trajectory.poses) if len(trajectory) else (np.zeros((0, 3)), np.zeros((0, 4)))
     data = np.column_stack([trajectory.stamps, t, q]) if len(trajectory) else np.zeros((0, 8))
     with atomic_open(path, "w", encoding="utf-8") as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw\n")
@@ -246,7 +247,7 @@ def read_g2o_vertices(path: PathLike, stamps: PathLike | None = None) -> Traject
             v = _floats(p, lineno, fields[2:], "'VERTEX_SE3:QUAT id x y z qx qy qz qw'")
             if np.linalg.norm(v[3:7]) < 1e-12:
                 raise LogFormatError(p, f"line {lineno}", "zero quaternion")
-            poses.append(geo.pose_from_quat(v[0:3], v[3:7]))
+            poses.append(pose_formats.pose_from_quat(v[0:3], v[3:7]))
     if len(set(ids)) != len(ids):
         raise LogFormatError(p, None, "duplicate vertex id")
     order = np.argsort(np.array(ids, dtype=np.int64), kind="stable")

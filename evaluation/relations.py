@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core import geometry as geo
+from core import pose_formats
 from core.errors import LogFormatError
 from core.numbers import c_floats
 from core.textfile import text_lines
@@ -105,7 +106,7 @@ def read_relations(path: str | os.PathLike[str]) -> Relations:
         rows.append(vals)
     d = np.array(rows, dtype=np.float64).reshape(-1, 8)
     deltas = np.zeros((len(d), 4, 4))
-    deltas[:, :3, :3] = geo.rpy_to_rotation(d[:, 5], d[:, 6], d[:, 7])
+    deltas[:, :3, :3] = pose_formats.rpy_to_rotation(d[:, 5], d[:, 6], d[:, 7])
     deltas[:, :3, 3] = d[:, 2:5]
     deltas[:, 3, 3] = 1.0
     return Relations(d[:, 0].copy(), d[:, 1].copy(), deltas, str(p))

@@ -168,6 +168,7 @@ def seeds(workdir: Path) -> dict[str, list[Seed]]:
     """The seed files of every format (deterministic; MCAP and bags in each chunk compression), some written
     into *workdir* as fixed companions."""
     from core import geometry as geo
+    from core import pose_formats
     from slam.graph import PoseGraph, write_g2o, write_toro
     from tests.test_logs_carmen import synthetic_log
     from tests.test_logs_mcap import write_basic_log
@@ -192,7 +193,7 @@ def seeds(workdir: Path) -> dict[str, list[Seed]]:
 
     tum = _tum_text(25, rng)
     out["tum"] = [Seed("tum", ".tum", tum.encode(), lambda p: ["eval", "ape", str(p), str(p)], _pairs_at_most_oracle)]
-    T = geo.pose_from_quat(np.zeros((25, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (25, 1)))
+    T = pose_formats.pose_from_quat(np.zeros((25, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (25, 1)))
     T[:, :3, 3] = rng.normal(0, 3, (25, 3))
     kitti = "".join(" ".join(repr(float(v)) for v in M[:3].ravel()) + "\n" for M in T)
     out["kitti"] = [Seed("kitti", ".kitti", kitti.encode(), lambda p: ["eval", "ape", str(p), str(p), "--est-format",

@@ -128,3 +128,22 @@ def test_no_module_imports_another_modules_private_names():
                     and node.attr.startswith("_") and not node.attr.startswith("__")):
                 bad.append(f"{mod}:{node.lineno} uses {aliases[node.value.id]}.{node.attr}")
     assert not bad, "\n".join(bad)
+
+
+def test_no_source_file_is_over_400_lines():
+    """Small modules with one job: a file past 400 lines is doing more than one."""
+    long = sorted(f"{mod}: {n} lines" for mod, path in MODULES.items()
+                  if (n := len(path.read_text(encoding="utf-8").splitlines())) > 400)
+    assert not long, long
+
+
+def test_no_function_of_the_pipeline_or_the_loop_closure_stages_is_over_80_lines():
+    """The frame loop and the loop-closure stages read a screen at a time."""
+    long = []
+    for mod, path in MODULES.items():
+        if not mod.startswith(("slam.pipeline", "slam.loops")):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 80:
+                long.append(f"{mod}.{node.name}: {node.end_lineno - node.lineno + 1} lines")
+    assert not long, long

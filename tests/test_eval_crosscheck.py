@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core import pose_formats
 
 pytest.importorskip("slam.graph")
 from slam.backends.crosscheck import crosscheck  # noqa: E402
@@ -71,9 +72,9 @@ def test_gtsam_chi2_matches_direct_gtsam(rng):
     fg = gtsam.NonlinearFactorGraph()
     vals = gtsam.Values()
     for k, T in enumerate(A):
-        vals.insert(k, geo.to_gtsam_pose2(T))
+        vals.insert(k, pose_formats.to_gtsam_pose2(T))
     for e in g.edges():
-        fg.add(gtsam.BetweenFactorPose2(e.i, e.j, geo.to_gtsam_pose2(e.measurement), gtsam.noiseModel.Gaussian.Information(e.information)))
+        fg.add(gtsam.BetweenFactorPose2(e.i, e.j, pose_formats.to_gtsam_pose2(e.measurement), gtsam.noiseModel.Gaussian.Information(e.information)))
     assert out["a"]["gtsam_error"] == pytest.approx(fg.error(vals), rel=1e-9)
     assert out["a"]["chi2"] == pytest.approx(2 * fg.error(vals), rel=1e-9)
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core import pose_formats
 from core.trajectory import Trajectory, write_tum
 from evaluation.published import DATASET_NAMES, METRIC_KEYS, PUBLISHED, recognise_dataset
 from evaluation.relations import Relations, evaluate_relations, read_relations
@@ -33,7 +34,7 @@ def _relations_from(gt: Trajectory, i1, i2) -> Relations:
 
 
 def _write_relations(path: Path, rel: Relations) -> None:
-    rpy = geo.rotation_to_rpy(rel.deltas[:, :3, :3])
+    rpy = pose_formats.rotation_to_rpy(rel.deltas[:, :3, :3])
     with open(path, "w") as fh:
         for a, b, D, r in zip(rel.t1, rel.t2, rel.deltas, rpy):
             fh.write(" ".join(repr(float(v)) for v in (a, b, *D[:3, 3], *r)) + "\n")

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core import pose_formats
 from core.trajectory import Trajectory, write_tum
 from evaluation.report import flatten_metrics, resample_classes
 
@@ -172,7 +173,7 @@ def test_report_relations_table_with_published_numbers(tmp_path):
     write_tum(rd / "trajectory.tum", gt)
     i = np.arange(0, 79)
     D = geo.relative(gt.poses[i], gt.poses[i + 1])
-    rpy = geo.rotation_to_rpy(D[:, :3, :3])
+    rpy = pose_formats.rotation_to_rpy(D[:, :3, :3])
     rows = np.column_stack([gt.stamps[i], gt.stamps[i + 1], D[:, :3, 3], rpy])
     (tmp_path / "intel.relations").write_text("".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows))
     rep = write_report(rd, relations=tmp_path / "intel.relations")

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core import geometry as G
+from core import pose_formats
 from core.errors import GeometryError
 
 finite = st.floats(-50.0, 50.0, allow_nan=False)
@@ -18,7 +19,7 @@ angle = st.floats(-np.pi, np.pi, allow_nan=False, exclude_max=True)
 def random_poses(rng, n):
     t = rng.normal(size=(n, 3)) * 5.0
     q = rng.normal(size=(n, 4))
-    return G.pose_from_quat(t, q)
+    return pose_formats.pose_from_quat(t, q)
 
 
 def test_inverse_is_group_inverse(rng):
@@ -117,17 +118,17 @@ def test_gtsam_round_trips(rng):
     """4×4 ↔ gtsam.Pose2 / Pose3 are exact inverses."""
     T = random_poses(rng, 5)
     for k in range(5):
-        np.testing.assert_allclose(G.from_gtsam_pose3(G.to_gtsam_pose3(T[k])), T[k], atol=1e-12)
+        np.testing.assert_allclose(pose_formats.from_gtsam_pose3(pose_formats.to_gtsam_pose3(T[k])), T[k], atol=1e-12)
     P = G.xytheta_to_matrix(1.5, -2.0, 2.9)
-    np.testing.assert_allclose(G.from_gtsam_pose2(G.to_gtsam_pose2(P)), P, atol=1e-12)
+    np.testing.assert_allclose(pose_formats.from_gtsam_pose2(pose_formats.to_gtsam_pose2(P)), P, atol=1e-12)
 
 
 def test_rpy_round_trip(rng):
     """rpy → R → rpy for pitch inside (−π/2, π/2); yaw-only equals rotz."""
     rpy = rng.uniform([-3, -1.5, -3], [3, 1.5, 3], size=(100, 3))
-    R = G.rpy_to_rotation(rpy[:, 0], rpy[:, 1], rpy[:, 2])
-    np.testing.assert_allclose(G.rotation_to_rpy(R), rpy, atol=1e-10)
-    np.testing.assert_allclose(G.rpy_to_rotation(0, 0, 0.7), G.rotz(0.7), atol=1e-15)
+    R = pose_formats.rpy_to_rotation(rpy[:, 0], rpy[:, 1], rpy[:, 2])
+    np.testing.assert_allclose(pose_formats.rotation_to_rpy(R), rpy, atol=1e-10)
+    np.testing.assert_allclose(pose_formats.rpy_to_rotation(0, 0, 0.7), G.rotz(0.7), atol=1e-15)
 
 
 def test_projections_return_nearest_rotation(rng):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core import pose_formats
 from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import open_log
 from slam.logs.mcap_reader import McapReader
@@ -89,7 +90,7 @@ def test_round_trip_every_type_decoded_independently(tmp_path, rng):
         assert (t.sec, t.nanosec) == stamp_to_time(s)
 
     def same_pose(msgpose, P):
-        t, q = geo.pose_to_quat(P)
+        t, q = pose_formats.pose_to_quat(P)
         got = np.array([msgpose.position.x, msgpose.position.y, msgpose.position.z])
         gq = np.array([msgpose.orientation.x, msgpose.orientation.y, msgpose.orientation.z, msgpose.orientation.w])
         np.testing.assert_array_equal(got, t)
@@ -124,7 +125,7 @@ def test_round_trip_every_type_decoded_independently(tmp_path, rng):
                 assert [(x.header.frame_id, x.child_frame_id) for x in m.transforms] == [e[:2] for e in exp]
                 for x, e in zip(m.transforms, exp):
                     tr = x.transform
-                    t, q = geo.pose_to_quat(e[2])
+                    t, q = pose_formats.pose_to_quat(e[2])
                     np.testing.assert_array_equal([tr.translation.x, tr.translation.y, tr.translation.z], t)
                     np.testing.assert_array_equal([tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], q)
             elif c.topic == "/path":
@@ -295,8 +296,8 @@ def test_pose_track_holds_ends_and_refuses_far_queries():
     """Outside its samples the track holds the end pose within max_gap and returns None beyond."""
     tr = PoseTrack(max_gap=0.2)
     a, b = geo.xytheta_to_matrix(0, 0, 0), geo.xytheta_to_matrix(1, 0, 0)
-    t_a, q_a = geo.pose_to_quat(a)
-    t_b, q_b = geo.pose_to_quat(b)
+    t_a, q_a = pose_formats.pose_to_quat(a)
+    t_b, q_b = pose_formats.pose_to_quat(b)
     tr.add(1.0, np.concatenate([t_a, q_a]))
     tr.add(2.0, np.concatenate([t_b, q_b]))
     out = tr.query_many([0.9, 0.7, 1.5, 2.1, 2.5])

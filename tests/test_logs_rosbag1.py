@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core import pose_formats
 from core.errors import LogFormatError, TopicNotFoundError
 from slam.logs import open_log
 from slam.logs.rosbag1 import Ros1BagReader
@@ -38,7 +39,7 @@ def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False, compress
         return Ty["std_msgs/msg/Header"](seq=0, stamp=Ty["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame)
 
     def pose_msg(P):
-        t, q = geo.pose_to_quat(P)
+        t, q = pose_formats.pose_to_quat(P)
         return Ty["geometry_msgs/msg/Pose"](
             position=Ty["geometry_msgs/msg/Point"](x=t[0], y=t[1], z=t[2]),
             orientation=Ty["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
@@ -56,7 +57,7 @@ def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False, compress
         cp = w.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=ts) if with_cloud else None
         t0 = 1000.0
         if mount is not None:
-            p, q = geo.pose_to_quat(mount)
+            p, q = pose_formats.pose_to_quat(mount)
             tr = Ty["geometry_msgs/msg/Transform"](
                 translation=Ty["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2]),
                 rotation=Ty["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),

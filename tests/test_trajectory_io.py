@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from core import geometry as geo
+from core import pose_formats
 from core.errors import LogFormatError
-import core.trajectory as tio
 from core.trajectory import Trajectory, read_g2o_vertices, read_kitti, read_tum, write_kitti, write_tum
+import core.trajectory as tio
 from slam.trajectory_io import read_trajectory
 
 
@@ -131,7 +132,7 @@ def test_every_reader_returns_poses_in_stamp_order_whatever_the_line_order(tmp_p
         write_kitti(tmp_path / f"{name}.kitti", t.subset(order))
         (tmp_path / f"{name}_times.txt").write_text("".join(f"{float(s)!r}\n" for s in t.stamps[order]))
         (tmp_path / f"{name}.g2o").write_text("".join(
-            f"VERTEX_SE3:QUAT {k} {' '.join(repr(float(v)) for v in np.concatenate(geo.pose_to_quat(T)))}\n"
+            f"VERTEX_SE3:QUAT {k} {' '.join(repr(float(v)) for v in np.concatenate(pose_formats.pose_to_quat(T)))}\n"
             for k, T in zip(order, t.poses[order])))
         (tmp_path / f"{name}_ids.txt").write_text("".join(f"{k} {float(s)!r}\n" for k, s in zip(order, t.stamps[order])))
     for a, b in ((read_tum(tmp_path / "a.tum"), read_tum(tmp_path / "b.tum")),

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from core import geometry as geo
+from core import pose_formats
 from slam.graph.posegraph import PRIOR_NODE, GraphError, PoseGraph, RobustKernel
 
 Array = NDArray[np.float64]
@@ -76,7 +77,7 @@ def noise_model(information: ArrayLike, dim: int, kernel: RobustKernel | None = 
 
 
 def _to_pose(T: Array, dim: int):  # type: ignore[no-untyped-def]
-    return geo.to_gtsam_pose2(T) if dim == 2 else geo.to_gtsam_pose3(T)
+    return pose_formats.to_gtsam_pose2(T) if dim == 2 else pose_formats.to_gtsam_pose3(T)
 
 
 def to_values(poses: ArrayLike, dim: int, keys: Sequence[int] | None = None):  # type: ignore[no-untyped-def]
@@ -88,9 +89,9 @@ def to_values(poses: ArrayLike, dim: int, keys: Sequence[int] | None = None):  #
     keys = range(len(P)) if keys is None else keys
     for k, T in zip(keys, P):
         if dim == 2:
-            v.insert(int(k), geo.to_gtsam_pose2(T))
+            v.insert(int(k), pose_formats.to_gtsam_pose2(T))
         else:
-            v.insert(int(k), geo.to_gtsam_pose3(T))
+            v.insert(int(k), pose_formats.to_gtsam_pose3(T))
     return v
 
 

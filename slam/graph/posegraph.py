@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from core import geometry as geo
+from core import pose_formats
 from core.errors import GeometryError, GpslamError
 
 from .connectivity import component_labels, free_component_anchors
@@ -82,13 +83,13 @@ class EdgeArrays:
 def _params_to_matrix(params: Array, dim: int) -> Array:
     if dim == 2:
         return geo.xytheta_to_matrix(params)
-    return geo.pose_from_quat(params[..., :3], params[..., 3:])
+    return pose_formats.pose_from_quat(params[..., :3], params[..., 3:])
 
 
 def _matrix_to_params(T: Array, dim: int) -> Array:
     if dim == 2:
         return geo.matrix_to_xytheta(T)
-    t, q = geo.pose_to_quat(T)
+    t, q = pose_formats.pose_to_quat(T)
     return np.concatenate([t, q], -1)
 
 

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from core import geometry as geo
+from core import pose_formats
 from core.atomic import atomic_path
 from core.errors import GeometryError
 
@@ -149,7 +149,7 @@ class McapLogWriter:
         T = np.asarray(pose, dtype=float)
         if T.shape != (4, 4):
             raise GeometryError(f"pose must be 4×4, got shape {T.shape}")
-        return self._pose_msg(*geo.pose_to_quat(T))
+        return self._pose_msg(*pose_formats.pose_to_quat(T))
 
     def _pose_msg(self, t: Array, q: Array) -> Any:
         """``geometry_msgs/Pose`` from a translation (3,) and a quaternion (4,) x, y, z, w."""
@@ -292,7 +292,7 @@ class McapLogWriter:
         for T in Ts:
             if T.shape != (4, 4):
                 raise GeometryError(f"pose must be 4×4, got shape {T.shape}")
-        ts, qs = geo.pose_to_quat(np.stack(Ts)) if Ts else ((), ())  # one vectorised conversion for the message
+        ts, qs = pose_formats.pose_to_quat(np.stack(Ts)) if Ts else ((), ())  # one vectorised conversion for the message
         items = [TS(header=self._header(stamp, parent), child_frame_id=str(child), transform=self._transform(t, q))
                  for (parent, child, _), t, q in zip(transforms, ts, qs)]
         msg = self._T[TF_MESSAGE](transforms=items)
@@ -305,7 +305,7 @@ class McapLogWriter:
         if Ps.ndim != 3 or Ps.shape[1:] != (4, 4) or Ps.shape[0] != st.shape[0]:
             raise GeometryError(f"path needs (N, 4, 4) poses for N stamps, got {Ps.shape} and {st.shape}")
         PS = self._T[POSE_STAMPED]
-        ts, qs = geo.pose_to_quat(Ps)  # one vectorised conversion, not one per pose
+        ts, qs = pose_formats.pose_to_quat(Ps)  # one vectorised conversion, not one per pose
         items = [PS(header=self._header(s, frame_id), pose=self._pose_msg(t, q)) for s, t, q in zip(st, ts, qs)]
         msg = self._T[PATH](header=self._header(stamp, frame_id), poses=items)
         self.write_message(topic, PATH, msg, stamp)

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from core import geometry as geo
+from core import pose_formats
 from core.errors import LogFormatError
 from core.frame import Frame
 
@@ -167,7 +168,7 @@ def transform_msg_vec(tf: Any) -> Array:
 def vecs_to_matrices(v: Array) -> Array:
     """``(..., 7)`` translation + quaternion → ``(..., 4, 4)`` poses (one vectorised call)."""
     v = np.asarray(v, dtype=float)
-    return geo.pose_from_quat(v[..., :3], v[..., 3:])
+    return pose_formats.pose_from_quat(v[..., :3], v[..., 3:])
 
 
 def pose_msg_to_matrix(pose: Any) -> Array:

@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from core import geometry as geo
+from core import pose_formats
 
 from .ros_msgs import BASE_FRAMES, header_stamp, interpolate_pose, strip_frame, transform_msg_vec, vecs_to_matrices
 
@@ -147,7 +148,7 @@ class TfBuffer:
             self.version += 1
             return
         if v.shape != (7,):
-            t, q = geo.pose_to_quat(v)
+            t, q = pose_formats.pose_to_quat(v)
             v = np.concatenate([t, q])
         track = self.dynamic.setdefault(child, PoseTrack(max_gap=math.inf))
         track.add(stamp, v)
