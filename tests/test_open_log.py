@@ -82,3 +82,49 @@ def test_unknown_and_missing(tmp_path):
         with pytest.raises(LogFormatError) as ei:
             open_log(p)
         assert str(p) in str(ei.value)
+
+
+def test_the_scan_count_hint_is_the_number_of_frames_where_an_index_tells_it(tmp_path):
+    """A progress bar's total without a second pass: an MCAP's summary, a ROS 1 bag's connection index and a
+    KITTI folder's files give the exact number of frames the reader yields; a CARMEN text log has no index."""
+    from evaluation.sim import LASER_PRESETS, load_world, simulate
+    from slam.logs.mcap_writer import write_cloud_log
+    from slam.logs.simulated import write_simulated_log
+    from tests.conftest import shared_path
+
+    sim = simulate(load_world("corridor"), n_scans=40, spec=LASER_PRESETS["sick_lms"], seed=2)
+    write_simulated_log(sim, tmp_path / "sim.mcap")
+    seq = shared_path("kitti_mini", "sequences", "07")
+    write_cloud_log(tmp_path / "kitti.mcap", open_log(seq).frames())
+    for path in (tmp_path / "sim.mcap", seq, tmp_path / "kitti.mcap"):
+        r = open_log(path)
+        assert r.scan_count_hint() == len(list(r.frames())) > 0, path
+    assert open_log(DATA / "intel.clf.bz2").scan_count_hint() is None
+
+
+def test_slam_run_reads_the_log_once(tmp_path, monkeypatch):
+    """``slam run`` with its progress bar takes the total from the index, never from a summarising pass."""
+    from evaluation.sim import LASER_PRESETS, load_world, simulate
+    from slam.cli import main
+    from slam.logs.mcap_reader import McapReader
+    from slam.logs.simulated import write_simulated_log
+
+    sim = simulate(load_world("corridor"), n_scans=60, spec=LASER_PRESETS["sick_lms"], seed=2)
+    write_simulated_log(sim, tmp_path / "sim.mcap")
+
+    def no_second_pass(self):  # type: ignore[no-untyped-def]
+        raise AssertionError("info() read the log a second time")
+
+    monkeypatch.setattr(McapReader, "info", no_second_pass)
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(tmp_path / "sim.mcap"), "--out", str(tmp_path / "run"),
+              "--config", str(_inline_config(tmp_path))])
+    assert exc.value.code in (0, None)
+    assert (tmp_path / "run" / "trajectory.tum").exists()
+
+
+def _inline_config(tmp_path):  # type: ignore[no-untyped-def]
+    """Stages in this process (the patched reader must be the one that runs), no map (faster)."""
+    p = tmp_path / "inline.yaml"
+    p.write_text("stage_processes: false\nmapping:\n  enabled: false\n")
+    return p

@@ -71,7 +71,6 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     import resource
     import time
 
-    from core.errors import LogFormatError
     from slam.logs import SkipLog, open_log
     from slam.pipeline.outputs import write_outputs
     from slam.pipeline.run import run_slam
@@ -90,18 +89,14 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     else:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        total = cfg.max_scans
-        if total is None:
-            try:
-                total = reader.info().scans
-            except LogFormatError:
-                if skipped is None:
-                    raise
-                total = None  # a damaged log: the run reports what it skips
-        with Progress(TextColumn("[bold]slam run"), BarColumn(), TextColumn("{task.completed}/{task.total} scans"),
+        # The log is read once: the bar's total comes from the log's index when it has one (MCAP, bag, KITTI),
+        # else the bar counts without one (a CARMEN text log would have to be read through for it).
+        hint = reader.scan_count_hint()
+        total = hint if cfg.max_scans is None else (cfg.max_scans if hint is None else min(hint, cfg.max_scans))
+        with Progress(TextColumn("[bold]slam run"), BarColumn(), TextColumn("{task.completed}{task.fields[of]} scans"),
                       TextColumn("{task.fields[rate]:.0f} scans/s  keyframes {task.fields[kf]}  closures {task.fields[lc]}"),
                       TimeElapsedColumn(), transient=True) as bar:
-            task = bar.add_task("run", total=total, rate=0.0, kf=0, lc=0)
+            task = bar.add_task("run", total=total, rate=0.0, kf=0, lc=0, of="" if total is None else f"/{total}")
 
             def progress(p):  # type: ignore[no-untyped-def]
                 if p.scans % 25 == 0:

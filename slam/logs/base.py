@@ -103,6 +103,11 @@ class LogReader(abc.ABC):
     def info(self) -> LogInfo:
         """Summarise the log (streams it once)."""
 
+    def scan_count_hint(self) -> int | None:
+        """The number of scans when the log's own index tells it without reading the log (a progress bar's
+        total), else None."""
+        return None
+
     def __iter__(self) -> Iterator[Frame]:
         return self.frames()
 

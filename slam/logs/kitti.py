@@ -263,6 +263,10 @@ class KittiReader(LogReader):
         """True when a poses file (:attr:`poses_path`) and ``calib.txt`` are there (the frames then carry ground truth)."""
         return self.ground_truth_velo() is not None
 
+    def scan_count_hint(self) -> int | None:
+        """One scan per ``.bin`` file."""
+        return len(self.bins)
+
     def info(self) -> LogInfo:
         """Summarise from the file sizes, checking each (a size not a multiple of 16 is an error)."""
         counts = []

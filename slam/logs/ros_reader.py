@@ -177,6 +177,13 @@ class RosLogReader(LogReader):
                 it.close()  # type: ignore[attr-defined]
         return None
 
+    def scan_count_hint(self) -> int | None:
+        """The sensor topic's message count from the container's index (summary / connections)."""
+        try:
+            return self.choose_topics().sensor.count or None
+        except LogFormatError:
+            return None
+
     def has_ground_truth(self) -> bool:
         """Whether a ground-truth topic (named or given) is in the log."""
         return self.choose_topics().ground_truth is not None
