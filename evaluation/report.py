@@ -346,20 +346,23 @@ def _map_and_roc(rd: Path, gt_map: str | os.PathLike[str] | None, gt_T_map: Arra
 
 def _summary(rd: Path, rep: Report) -> None:
     """Counts and stage timings of ``summary.json``; the closures the back end pruned count against precision."""
+    from core.run_summary import read_run_summary
+
     m = rep.metrics
     if not (rd / "summary.json").exists():
         rep.notes.append("summary.json not found")
         return
     try:
-        summary = json.loads((rd / "summary.json").read_text())
-    except json.JSONDecodeError as exc:
-        raise MapFormatError(rd / "summary.json", f"line {exc.lineno}", f"invalid JSON: {exc.msg}") from None
-    tm = _timings(summary) if isinstance(summary, dict) else {}
+        summary = read_run_summary(rd / "summary.json").model_dump()
+    except MapFormatError as exc:  # another version's folder: the rest of the report stands
+        rep.notes.append(f"{' '.join(str(exc).split())}: counts and timings not reported")
+        return
+    tm = _timings(summary)
     counts = {k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
-              and not k.endswith("_time_s")} if isinstance(summary, dict) else {}
+              and not k.endswith("_time_s")}
     if counts:
         m["summary"] = counts  # top-level numbers of summary.json (scan, keyframe, loop counts ...)
-    pruned = (summary.get("loop_stats") or {}).get("pruned") if isinstance(summary, dict) else None
+    pruned = summary["loop_stats"].get("pruned")
     if "loops" in m and isinstance(pruned, int) and pruned >= 0:
         # graph.g2o holds only the closures the back end kept; the ones it pruned (violated by more
         # than its thresholds, by default Cartographer's 20 cm / 1°) count against the verifier.

@@ -7,6 +7,8 @@ Default: the bundled Intel Research Lab log and its ground-truth relations.
 from __future__ import annotations
 
 import argparse
+import resource
+import time
 from pathlib import Path
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -25,7 +27,7 @@ def main() -> None:
     from evaluation.relations import evaluate_relations, read_relations
     from slam.logs import open_log
     from slam.pipeline.config import SlamConfig
-    from slam.pipeline.outputs import write_outputs
+    from slam.pipeline.outputs import summarise, write_outputs
     from slam.pipeline.run import run_slam
 
     # 1. Open the log: the reader streams Frames (scan, wheel odometry, sensor mounting).
@@ -36,11 +38,15 @@ def main() -> None:
     config = SlamConfig(max_scans=args.max_scans)
 
     # 3. Run the pipeline over the frames.
+    t0 = time.perf_counter()
     result = run_slam(reader.frames(), config)
+    run_s = time.perf_counter() - t0
     print(f"3. {len(result.keyframes)} keyframes, {len(result.loops)} loop closures")
 
-    # 4. Write trajectory, graph, map and MCAP.
-    write_outputs(args.out, result, result.occupancy_map, config, {"scans": len(result.stamps)})
+    # 4. Write trajectory, graph, map, MCAP and the run's summary.
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    write_outputs(args.out, result, result.occupancy_map, config,
+                  lambda outputs_s: summarise(result, str(args.log), config, run_s, time.perf_counter() - t0, outputs_s, peak_mb))
     print(f"4. outputs in {args.out}")
 
     # 5. Score against the relations (only those whose scans were processed count).

@@ -204,3 +204,23 @@ def test_report_when_no_relation_joins_two_scans(tmp_path):
     assert rel["n_used"] == 0 and rel["n_missing"] == 5
     assert any("none of the 5 relations" in n for n in rep.notes)
     assert (rd / "report.html").stat().st_size > 0
+
+
+def test_a_runs_summary_reads_back_typed_and_a_foreign_one_is_named(tmp_path, run_summary):
+    """summary.json of a real run is a RunSummary (every key known, the types right, the stage timings include
+    writing the outputs); a key the format does not have makes read_run_summary name it, and the report then
+    says so in a note instead of failing."""
+    from core.errors import MapFormatError
+    from core.run_summary import RunSummary, read_run_summary
+    from evaluation.report import build_report
+
+    s = RunSummary.model_validate(run_summary)
+    assert s.scans == 60 and s.dimension == 2 and "outputs_s" in s.stage_times_s
+    assert s.peak_memory_mb == pytest.approx(sum(s.peak_memory_by_process_mb.values()))
+    p = tmp_path / "run" / "summary.json"
+    p.parent.mkdir()
+    p.write_text(json.dumps(run_summary | {"wal_time_s": 1.0}))
+    with pytest.raises(MapFormatError, match="wal_time_s: unknown key"):
+        read_run_summary(p)
+    rep = build_report(p.parent)
+    assert any("wal_time_s: unknown key" in n for n in rep.notes) and "summary" not in rep.metrics

@@ -13,7 +13,8 @@ results are the same either way.
 
 Peak memory: a Ray worker runs many tasks, so its lifetime peak (``ru_maxrss``) is not the run's. The
 peak resident size is reset before the run (Linux ``/proc/self/clear_refs``, value 5) and read after
-it (``VmHWM``); ``summary.json`` and the row get that, plus the stage processes' own peaks.
+it (``VmHWM``, when ``summary.json`` is written); the summary and the row get that, plus the stage
+processes' own peaks.
 """
 
 from __future__ import annotations
@@ -99,16 +100,13 @@ def _loop_precision(folder: Path, pruned: int) -> float | None:
     return s.n_correct / total if total else None
 
 
-def _finish_row(job: Job, folder: Path, summary: dict[str, Any], peak_mb: float | None) -> dict[str, Any]:
-    """Complete ``summary.json``'s peak memory and build the row from it and ``metrics.json``."""
+def _finish_row(job: Job, folder: Path) -> dict[str, Any]:
+    """The run's table row, from its ``summary.json`` and ``metrics.json``."""
     import hashlib
 
-    s = json.loads((folder / "summary.json").read_text())
-    if peak_mb is not None:
-        peaks = dict(s.get("peak_memory_by_process_mb") or {}) | {"main": peak_mb}
-        s["peak_memory_by_process_mb"] = peaks
-        s["peak_memory_mb"] = sum(peaks.values())
-        (folder / "summary.json").write_text(json.dumps(s, indent=2, default=float))
+    from core.run_summary import read_run_summary
+
+    s = read_run_summary(folder / "summary.json").model_dump()
     metrics = json.loads((folder / "metrics.json").read_text()) if (folder / "metrics.json").is_file() else {}
     rel = metrics.get("relations") or {}
     est = rel.get("estimate") or {}
@@ -158,8 +156,9 @@ def run_job(job: Job) -> dict[str, Any]:
     try:
         run = staging / "run"
         measured = _reset_peak_rss()
-        summary = run_log(Path(job.log), run, cfg, job.topic, quiet=True, reference=reference)
-        row = _finish_row(job, run, summary, _peak_rss_mb() if measured else None)
+        run_log(Path(job.log), run, cfg, job.topic, quiet=True, reference=reference,
+                peak_main_mb=_peak_rss_mb if measured else None)
+        row = _finish_row(job, run)
         doc = {"log": job.log, "log_sha256": job.log_sha256, "config_sha256": job.config_sha256, "row": row}
         (run / BATCH_FILE).write_text(json.dumps(doc, indent=2, default=float) + "\n")
         with sigint_deferred():

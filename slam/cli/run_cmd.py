@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import typer
 
@@ -55,7 +55,7 @@ class MapMethod(str, Enum):
 
 
 def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = False,  # type: ignore[no-untyped-def]
-            reference=None) -> dict:
+            reference=None, peak_main_mb: Callable[[], float | None] | None = None) -> dict:
     """Run the pipeline on *log*, write the outputs into *out*, return the summary dict.
 
     ``cfg.on_error``: ``"stop"`` ends the run at the first corrupt record (LogFormatError, nothing
@@ -65,14 +65,15 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     ``file:pos: what`` line per skip: a chunk is one). With a *reference*
     (:class:`slam.cli.run_eval.Reference`) the evaluation report is written into *out* too; its
     headline lines are returned under ``"evaluation"``. Every file, the report included, is moved
-    into *out* only once all are written.
+    into *out* only once all are written. *peak_main_mb* gives this process's peak memory for the summary
+    (default: its lifetime peak, ``ru_maxrss``; a batch worker that ran other tasks before measures its own).
     """
-    import json
     import resource
     import time
 
+    from core.run_summary import RunSummary, read_run_summary
     from slam.logs import SkipLog, open_log
-    from slam.pipeline.outputs import write_outputs
+    from slam.pipeline.outputs import summarise, write_outputs
     from slam.pipeline.run import run_slam
 
     from .run_eval import GroundTruthRecorder, write_evaluation
@@ -108,50 +109,25 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
             bar.update(task, completed=len(result.stamps), rate=len(result.stamps) / max(time.perf_counter() - t0, 1e-9),
                        kf=len(result.keyframes), lc=_loop_closures(result))
     wall_run = time.perf_counter() - t0
-    skipped_scans, exact = skipped.scans() if skipped is not None else (0, True)
-    if skipped is not None:
-        result.skipped_scans, result.errors = skipped_scans, skipped.lines()
-    n = len(result.stamps)
-    summary = {
-        "log": str(log),
-        "scans": n,
-        "keyframes": len(result.keyframes),
-        "loop_closures": _loop_closures(result),
-        "loop_stats": result.loop_stats,
-        "odometry_stats": result.odometry_stats,
-        "self_check": result.self_check,
-        "dimension": 2 if result.planar else 3,
-        "stage_times_s": result.stage_times_s,
-        "map_scans_fused": result.map_scans_fused,
-        "on_error": cfg.on_error,
-        "skipped_records": skipped.records() if skipped is not None else 0,  # None: a cut stream, count unknown
-        "skipped_scans": skipped_scans,  # of those records, the scans (at least, unless skipped_scans_exact)
-        "skipped_scans_exact": exact,
-        "errors": result.errors,
-    }
-    t1 = time.perf_counter()
     evaluation: list[str] = []
 
-    def finish(folder: Path) -> None:
-        """Complete summary.json (final timings) and the evaluation report, before the move into *out*."""
-        summary["stage_times_s"]["outputs_s"] = time.perf_counter() - t1
-        summary["wall_time_s"] = time.perf_counter() - t0
-        summary["scans_per_second"] = n / wall_run if wall_run > 0 else 0.0
+    def summary(outputs_s: float) -> RunSummary:
         # Every process's peak, summed: an upper bound on the memory the run held at any one time.
-        peaks = {"main": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, **result.peak_memory_mb}
-        summary["peak_memory_mb"] = sum(peaks.values())
-        summary["peak_memory_by_process_mb"] = peaks
-        full = json.loads((folder / "summary.json").read_text())
-        full.update(summary)
-        with open(folder / "summary.json", "w") as fh:
-            json.dump(full, fh, indent=2, default=float)
+        peak = peak_main_mb() if peak_main_mb is not None else None
+        return summarise(result, str(log), cfg, wall_run, time.perf_counter() - t0, outputs_s,
+                         peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                         skipped)
+
+    def evaluate(folder: Path) -> None:
+        """The evaluation report, before the move into *out*."""
         if reference is not None:
             evaluation.extend(write_evaluation(folder, reference, recorder, result.stamps, str(out)))
 
-    write_outputs(out, result, result.occupancy_map, cfg, summary | {"wall_time_s": None}, before_commit=finish)
+    write_outputs(out, result, result.occupancy_map, cfg, summary, before_commit=evaluate)
+    written = read_run_summary(out / "summary.json").model_dump(mode="json")
     if reference is not None:
-        summary["evaluation"] = evaluation
-    return summary
+        written["evaluation"] = evaluation
+    return written
 
 
 def _loop_closures(result) -> int:  # type: ignore[no-untyped-def]

@@ -10,14 +10,15 @@ folder beside the target and moved in only when complete, replacing an earlier r
 
 from __future__ import annotations
 
-import json
 import platform
+import time
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from core.atomic import atomic_directory
+from core.run_summary import RunSummary
 
 from .config import SlamConfig
 from .run import SlamResult
@@ -76,19 +77,43 @@ def _write_ply(path: Path, result: SlamResult, voxel: float) -> None:
         raise OSError(f"open3d could not write {path}")
 
 
-def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: SlamConfig, summary: dict,  # type: ignore[no-untyped-def]
-                  before_commit: Callable[[Path], None] | None = None) -> Path:
+def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wall_time_s: float, outputs_s: float,
+              peak_main_mb: float, skipped=None) -> RunSummary:  # type: ignore[no-untyped-def]
+    """The :class:`~core.run_summary.RunSummary` of *result*: *run_s* the pipeline's time (reading and SLAM),
+    *wall_time_s* until the last file, *outputs_s* writing the files, *peak_main_mb* this process's peak (the
+    stage processes' come with the result); *skipped* the :class:`~slam.logs.SkipLog` of ``on_error: skip``."""
+    n = len(result.stamps)
+    scans_lost, exact = skipped.scans() if skipped is not None else (0, True)
+    peaks = {"main": float(peak_main_mb), **result.peak_memory_mb}
+    return RunSummary(
+        log=log, scans=n, keyframes=len(result.keyframes),
+        loop_closures=len(result.loops) - result.loop_stats.get("pruned", 0),
+        loop_stats=result.loop_stats, odometry_stats=result.odometry_stats, self_check=result.self_check,
+        dimension=2 if result.planar else 3, stage_times_s=result.stage_times_s | {"outputs_s": outputs_s},
+        map_scans_fused=result.map_scans_fused, on_error=config.on_error,
+        skipped_records=skipped.records() if skipped is not None else 0, skipped_scans=scans_lost,
+        skipped_scans_exact=exact, errors=skipped.lines() if skipped is not None else [],
+        wall_time_s=wall_time_s, scans_per_second=n / run_s if run_s > 0 else 0.0,
+        peak_memory_mb=sum(peaks.values()), peak_memory_by_process_mb=peaks,
+        versions=_versions(), config=config.model_dump(mode="json"),
+    )
+
+
+def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: SlamConfig,  # type: ignore[no-untyped-def]
+                  summary: Callable[[float], RunSummary], before_commit: Callable[[Path], None] | None = None) -> Path:
     """Write every output of a run into *out_dir* (atomically); returns the folder.
 
-    *before_commit*, when given, is called with the temporary folder once every file is in it
-    and may add or rewrite files there (a final ``summary.json``, an evaluation report): they
-    are moved into *out_dir* together with the rest, or not at all.
+    ``summary(outputs_s)`` gives the run's summary once the other files are written (*outputs_s* the time
+    they took); it is written once, as ``summary.json``. *before_commit*, when given, is then called with the
+    temporary folder and may add files there (an evaluation report): they are moved into *out_dir* together
+    with the rest, or not at all.
     """
     from core.trajectory import Trajectory, write_tum
     from mapping.occupancy_map import export_map
     from slam.graph.g2o import write_g2o
 
     out = Path(out_dir)
+    t0 = time.perf_counter()
     with atomic_directory(out, RUN_MARKER) as tmp:
         write_tum(tmp / "trajectory.tum", Trajectory(result.stamps, result.poses, "slam"))
         write_tum(tmp / "odometry.tum", Trajectory(result.stamps, result.odometry, "odometry"))
@@ -103,10 +128,8 @@ def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: Slam
         if not result.planar:
             _write_ply(tmp / "points.ply", result, config.mapping.point_map_voxel)
         _write_mcap(tmp / "result.mcap", result, occ_map)
-        summary = dict(summary, versions=_versions(), config=config.model_dump(mode="json"))
-        with open(tmp / "summary.json", "w") as fh:
-            json.dump(summary, fh, indent=2, default=float)
         (tmp / "config.yaml").write_text(config.to_yaml())
+        (tmp / "summary.json").write_text(summary(time.perf_counter() - t0).model_dump_json(indent=2) + "\n")
         if before_commit is not None:
             before_commit(tmp)
     return out

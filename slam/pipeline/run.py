@@ -59,8 +59,6 @@ class SlamResult:
     stage_times_s: dict[str, float]
     occupancy_map: object | None = None  # mapping.occupancy_map.OccupancyMap
     map_scans_fused: int = 0
-    skipped_scans: int = 0
-    errors: list[str] = field(default_factory=list)
     odometry_stats: dict = field(default_factory=dict)  # alternative ICP starts taken, wheel edges left out
     peak_memory_mb: dict[str, float] = field(default_factory=dict)  # of the stage processes ("front_end", "mapping"), when they ran as such
     self_check: dict = field(default_factory=dict)  # slam.pipeline.self_check: does the result contradict its own data?

@@ -1,0 +1,57 @@
+"""``summary.json`` of a run folder: what ``slam run`` did, written once when the run's files are complete, read
+by the evaluation report and by ``slam batch``. One typed record (pydantic), so a writer cannot misspell a key
+and a reader gets the types it expects."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from .errors import MapFormatError
+
+__all__ = ["RunSummary", "read_run_summary"]
+
+
+class RunSummary(BaseModel):
+    """One run of the pipeline over a log."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    log: str  # the log as given
+    scans: int  # scans read
+    keyframes: int
+    loop_closures: int  # accepted and kept by the final solve
+    loop_stats: dict[str, Any]  # the loop closer's counters (candidates, rejections by reason, pruned, …)
+    odometry_stats: dict[str, Any]  # the front end's counters (alternative starts, wheel edges left out, …)
+    self_check: dict[str, Any]  # verdict, contradicting keyframes, violated closures, where
+    dimension: Literal[2, 3]
+    stage_times_s: dict[str, float]  # wall time per stage (odometry_s, loop_closure_s, …, outputs_s)
+    map_scans_fused: int
+    on_error: Literal["stop", "skip"]
+    skipped_records: int | None  # corrupt records left out; None when a cut stream lost an unknown number
+    skipped_scans: int  # the scans among them (at least, unless skipped_scans_exact)
+    skipped_scans_exact: bool
+    errors: list[str]  # one ``file:pos: what`` line per skip
+    wall_time_s: float  # from the first scan read to the last file written
+    scans_per_second: float  # scans / the pipeline's own time (reading and SLAM, not the outputs)
+    peak_memory_mb: float  # every process's peak resident memory, summed: an upper bound at any one time
+    peak_memory_by_process_mb: dict[str, float]
+    versions: dict[str, str]  # python and the libraries that shape the result
+    config: dict[str, Any]  # the whole configuration (the same as config.yaml)
+
+
+def read_run_summary(path: str | Path) -> RunSummary:
+    """A run's ``summary.json``; a file that is not one (bad JSON, a missing or unknown key, an older layout)
+    is a :class:`MapFormatError` naming it."""
+    p = Path(path)
+    try:
+        return RunSummary.model_validate_json(p.read_bytes())
+    except OSError as exc:
+        raise MapFormatError(p, None, f"cannot read: {exc.strerror or exc}") from None
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(map(str, first["loc"])) or "(top level)"
+        what = "unknown key" if first["type"] == "extra_forbidden" else first["msg"]
+        raise MapFormatError(p, None, f"not a run summary of this version: {where}: {what}") from None
