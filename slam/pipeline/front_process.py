@@ -8,15 +8,19 @@ the back half consumes them in the same order as inline, so both give identical 
 time then overlaps the loop closure instead of adding to it.
 
 Both kinds share one interface: :meth:`submit` a frame, take the keyframes :meth:`ready` so far,
-:meth:`finish` for the rest and a :class:`FrontEndSummary`.
+:meth:`finish` for the rest and a :class:`FrontEndSummary`. :func:`run_front_end` is the one frame loop
+over them, used by ``slam run`` (:func:`slam.pipeline.run.run_slam`), ``slam loops`` and the loop replay
+(:func:`slam.pipeline.loop_replay.record_front_end`). Stage processes are the default: Intel end to end
+takes 52 s with them and 68 s in one process on two cores (2026-11-26), with byte-identical outputs.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Iterator
+from typing import Callable, Iterable, Iterator
 
+from core.errors import GpslamError
 from core.frame import Frame
 
 from .child import ChildProcess, Reply, peak_memory_mb
@@ -138,6 +142,36 @@ class FrontEndProcess:
         self._child.close()
 
 
-def start_front_end(config: SlamConfig, planar: bool) -> InlineFrontEnd | FrontEndProcess:
-    """The front end as ``config.stage_processes`` asks: in a child process or inline."""
-    return FrontEndProcess(config, planar) if config.stage_processes else InlineFrontEnd(config, planar)
+def run_front_end(frames: Iterable[Frame], config: SlamConfig, on_keyframe: Callable[[Keyframe, OdometryEdge | None,
+                  WheelEdge | None], None], on_scan: Callable[[int, Frame], None] | None = None,
+                  processes: bool | None = None) -> FrontEndSummary:
+    """The frame loop every command shares (``slam run``, ``slam loops``, the loop replay): each frame (up to
+    ``config.max_scans``) into the front end — in its own process when *processes* (default
+    ``config.stage_processes``), else here — each keyframe to *on_keyframe* as soon as it is ready, in
+    order, and ``on_scan(scans read, frame)`` after each frame; returns the front end's summary once every
+    keyframe is out. The front end is stopped on the way out, also on an error or Ctrl-C. Raises
+    GpslamError when the frames hold no scan."""
+    use_process = config.stage_processes if processes is None else processes
+    front: InlineFrontEnd | FrontEndProcess | None = None
+    try:
+        n = 0
+        for frame in frames:
+            if config.max_scans is not None and n >= config.max_scans:
+                break
+            if front is None:
+                front = FrontEndProcess(config, frame.is_planar) if use_process else InlineFrontEnd(config, frame.is_planar)
+            front.submit(frame)
+            n += 1
+            for item in front.ready():
+                on_keyframe(*item)
+            if on_scan is not None:
+                on_scan(n, frame)
+        if front is None:
+            raise GpslamError("the log yielded no scans")
+        rest, summary = front.finish()
+        for item in rest:
+            on_keyframe(*item)
+        return summary
+    finally:
+        if front is not None:
+            front.close()

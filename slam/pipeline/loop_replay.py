@@ -25,12 +25,12 @@ from numpy.typing import NDArray
 
 from core.errors import GpslamError
 from core.frame import Frame
+from slam.loops import LoopClosure
 
 from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig, SlamConfig
-from .frontend import FrontEnd, Keyframe, OdometryEdge, WheelEdge
-from slam.loops import LoopClosure
-from .odometry_source import make_odometry
+from .front_process import run_front_end
+from .frontend import Keyframe, OdometryEdge, WheelEdge
 from .online_graph import OnlineGraph
 from .trajectory import interpolate_scan_poses
 
@@ -107,35 +107,36 @@ def record_front_end(frames: Iterable[Frame], config: SlamConfig,
     from slam.blas import single_blas_thread
 
     t0 = time.perf_counter()
-    front: FrontEnd | None = None
+    keyframes: list[Keyframe] = []
     edges: list[OdometryEdge | None] = []
     wheels: list[WheelEdge | None] = []
-    gt: list[Array] | None = []
+    gt: list[Array] = []  # the ground truth of every scan, while every scan has one
+    all_gt = [True]
+
+    def keep(kf: Keyframe, edge: OdometryEdge | None, wheel: WheelEdge | None) -> None:
+        keyframes.append(kf)
+        edges.append(edge)
+        wheels.append(wheel)
+
+    def seen(n: int, frame: Frame) -> None:
+        if all_gt[0] and frame.ground_truth is None:
+            all_gt[0] = False
+            gt.clear()
+        elif all_gt[0]:
+            gt.append(np.asarray(frame.ground_truth, dtype=float))
+        if progress is not None:
+            progress(n, len(keyframes))
+
     with single_blas_thread():
-        for n, frame in enumerate(frames):
-            if config.max_scans is not None and n >= config.max_scans:
-                break
-            if front is None:
-                front = FrontEnd(config, make_odometry(config, frame.is_planar))
-            if gt is not None:
-                if frame.ground_truth is None:
-                    gt = None
-                else:
-                    gt.append(np.asarray(frame.ground_truth, dtype=float))
-            kf, edge, _ = front.process(frame)
-            if kf is not None:
-                edges.append(edge)
-                wheels.append(front.latest_wheel_edge(kf) if edge is not None else None)
-            if progress is not None:
-                progress(n + 1, len(front.keyframes))
-    if front is None or not front.keyframes:
+        summary = run_front_end(frames, config, keep, seen, processes=False)
+    if not keyframes:
         raise GpslamError("the log yielded no scans")
-    tr = front.track
+    tr = summary.track
     return FrontEndRecord(
-        planar=front.keyframes[0].frame.is_planar, keyframes=list(front.keyframes), edges=edges, wheel_edges=wheels,
+        planar=keyframes[0].frame.is_planar, keyframes=keyframes, edges=edges, wheel_edges=wheels,
         stamps=np.asarray(tr.stamps, dtype=float), odometry=np.asarray(tr.odom_poses, dtype=float),
         scan_keyframe=np.asarray(tr.keyframe, dtype=np.int64),
-        ground_truth=np.asarray(gt, dtype=float).reshape(-1, 4, 4) if gt is not None else None,
+        ground_truth=np.asarray(gt, dtype=float).reshape(-1, 4, 4) if all_gt[0] else None,
         time_s=time.perf_counter() - t0)
 
 

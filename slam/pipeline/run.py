@@ -19,12 +19,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core.errors import GpslamError
+from slam.loops import LoopClosure
 
 from .backend import PipelineBackend
 from .config import SlamConfig
-from .front_process import start_front_end
+from .front_process import run_front_end
 from .frontend import Keyframe
-from slam.loops import LoopClosure
 from .online_graph import OnlineGraph
 from .self_check import self_check
 from .trajectory import interpolate_scan_poses
@@ -89,10 +89,15 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
 
     t_start = time.perf_counter()
     times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
-    front = None
     keyframes: list[Keyframe] = []
+    stages: list = []  # the loop closer + back end and the mapping stage, made for the first keyframe's dimension
 
     def add_keyframe(kf: Keyframe, edge, wheel) -> None:  # type: ignore[no-untyped-def]
+        if not stages:
+            planar = kf.frame.is_planar
+            stages.extend([OnlineGraph(config.loops, config.backend, planar),
+                           start_mapping(config.mapping, planar, config.stage_processes)])
+        graph, mapper = stages
         keyframes.append(kf)
         new = graph.add(keyframes, edge, wheel)
         t5 = time.perf_counter()
@@ -102,29 +107,17 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
             mapper.refresh(graph.backend.poses)
         times["mapping_s"] += time.perf_counter() - t5
 
-    n = 0
+    def on_scan(n: int, _frame) -> None:  # type: ignore[no-untyped-def]
+        if progress is not None:
+            loops = len(stages[0].loops) if stages else 0
+            progress(Progress(n, len(keyframes), loops, time.perf_counter() - t_start))
+
     try:
-        for frame in frames:
-            if config.max_scans is not None and n >= config.max_scans:
-                break
-            if front is None:
-                planar = frame.is_planar
-                front = start_front_end(config, planar)
-                graph = OnlineGraph(config.loops, config.backend, planar)
-                mapper = start_mapping(config.mapping, planar, config.stage_processes)
-            front.submit(frame)
-            n += 1
-            for item in front.ready():
-                add_keyframe(*item)
-            if progress is not None:
-                progress(Progress(n, len(keyframes), len(graph.loops), time.perf_counter() - t_start))
-        if front is None:
-            raise GpslamError("the log yielded no scans")
-        rest, summary = front.finish()
-        for item in rest:
-            add_keyframe(*item)
+        summary = run_front_end(frames, config, add_keyframe, on_scan)
         if not keyframes:
             raise GpslamError("the log yielded no scans")
+        graph, mapper = stages
+        planar = keyframes[0].frame.is_planar
         t4 = time.perf_counter()
         kf_poses = graph.finish()
         times["final_solve_s"] = time.perf_counter() - t4
@@ -138,9 +131,8 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
         else:
             times["mapping_s"] += time.perf_counter() - t6
     finally:
-        if front is not None:
-            front.close()
-            mapper.close()
+        if stages:
+            stages[1].close()
     times["odometry_s"] = summary.odometry_s
     times.update(graph.times)
     tr = summary.track
