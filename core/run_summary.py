@@ -36,7 +36,8 @@ class RunSummary(BaseModel):
     errors: list[str]  # one ``file:pos: what`` line per skip
     wall_time_s: float  # from the first scan read to the last file written
     scans_per_second: float  # scans / the pipeline's own time (reading and SLAM, not the outputs)
-    peak_memory_mb: float  # every process's peak resident memory, summed: an upper bound at any one time
+    peak_memory_mb: float  # every process's peak resident memory until the outputs are written, summed (the
+    # evaluation report, when asked for, comes after)
     peak_memory_by_process_mb: dict[str, float]
     versions: dict[str, str]  # python and the libraries that shape the result
     config: dict[str, Any]  # the whole configuration (the same as config.yaml)

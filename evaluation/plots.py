@@ -52,6 +52,20 @@ def _extent(shape: tuple[int, ...], resolution: float, origin: Sequence[float]) 
     return [origin[0], origin[0] + w * resolution, origin[1], origin[1] + h * resolution]
 
 
+def _figure_grid(image: Array, resolution: float) -> tuple[Array, float]:
+    """*image* reduced to about one cell a pixel of the figure (max over blocks of cells, unknown NaN cells not
+    counting: a one-cell wall stays visible) and the reduced cell size; a map of 34 million cells made
+    matplotlib hold ~4 GB of float copies for an 800-pixel figure."""
+    from mapping.occupancy_map import PNG_CELLS, max_pool
+
+    img = np.asarray(image, float)
+    block = max(1, int(np.ceil(max(img.shape) / PNG_CELLS)))
+    if block == 1:
+        return img, resolution
+    pooled, seen = max_pool(img, np.isfinite(img), block)
+    return np.where(seen, pooled, np.nan), resolution * block
+
+
 def trajectory_map_png(
     paths: dict[str, Array],
     probability: Array | None = None,
@@ -71,8 +85,9 @@ def trajectory_map_png(
         if probability is not None and resolution is not None and origin is not None:
             cmap = plt.get_cmap("gray_r").copy()
             cmap.set_bad("#dfe8f0")  # unknown cells (NaN): pale blue-grey
-            im = ax.imshow(np.asarray(probability, float), origin="lower", cmap=cmap, vmin=0.0, vmax=1.0,
-                           extent=_extent(probability.shape, resolution, origin), interpolation="nearest")
+            grid, cell = _figure_grid(probability, resolution)
+            im = ax.imshow(grid, origin="lower", cmap=cmap, vmin=0.0, vmax=1.0,
+                           extent=_extent(grid.shape, cell, origin), interpolation="nearest")
             cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
             cb.set_label(bg_label)
         if loops is not None and len(loops):
@@ -168,8 +183,8 @@ def map_png(image: Array, resolution: float, origin: Sequence[float], label: str
     plt = _plt()
     with plt.rc_context(_RC):
         fig, ax = plt.subplots(figsize=(8, 7))
-        im = ax.imshow(np.asarray(image, float), origin="lower", cmap=cmap,
-                       extent=_extent(image.shape, resolution, origin), interpolation="nearest")
+        grid, cell = _figure_grid(image, resolution)
+        im = ax.imshow(grid, origin="lower", cmap=cmap, extent=_extent(grid.shape, cell, origin), interpolation="nearest")
         cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
         cb.set_label(label)
         ax.set_aspect("equal")
