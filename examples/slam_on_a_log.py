@@ -32,7 +32,7 @@ def main() -> None:
 
     # 1. Open the log: the reader streams Frames (scan, wheel odometry, sensor mounting).
     reader = open_log(args.log)
-    print(f"1. {reader.info().scans} scans in {args.log.name}")
+    print(f"1. {args.log.name}: a {reader.format} log")
 
     # 2. Configure: KISS-ICP odometry, ICP-verified loop closures, iSAM2, Fast-GPOM submaps.
     config = SlamConfig(max_scans=args.max_scans)
@@ -41,7 +41,7 @@ def main() -> None:
     t0 = time.perf_counter()
     result = run_slam(reader.frames(), config)
     run_s = time.perf_counter() - t0
-    print(f"3. {len(result.keyframes)} keyframes, {len(result.loops)} loop closures")
+    print(f"3. {len(result.stamps)} scans, {len(result.keyframes)} keyframes, {len(result.loops)} loop closures")
 
     # 4. Write trajectory, graph, map, MCAP and the run's summary.
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
