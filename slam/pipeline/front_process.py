@@ -10,8 +10,8 @@ time then overlaps the loop closure instead of adding to it.
 Both kinds share one interface: :meth:`submit` a frame, take the keyframes :meth:`ready` so far,
 :meth:`finish` for the rest and a :class:`FrontEndSummary`. :func:`run_front_end` is the one frame loop
 over them, used by ``slam run`` (:func:`slam.pipeline.run.run_slam`), ``slam loops`` and the loop replay
-(:func:`slam.pipeline.loop_replay.record_front_end`). Stage processes are the default: Intel end to end
-takes 52 s with them and 68 s in one process on two cores (2026-11-26), with byte-identical outputs.
+(:func:`slam.pipeline.loop_replay.record_front_end`). Stage processes are the default: on two cores a run
+is about a quarter faster with them, with byte-identical outputs (measured in docs/ARCHITECTURE.md).
 """
 
 from __future__ import annotations
