@@ -6,7 +6,7 @@ int64 and deduplicated with a sort (``np.unique``), so the cost is O(N log N) wi
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Iterable, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -15,7 +15,7 @@ from core.errors import GeometryError
 
 Array = NDArray[np.float64]
 
-__all__ = ["voxel_keys", "voxel_downsample"]
+__all__ = ["voxel_keys", "voxel_downsample", "voxel_downsample_stream"]
 
 
 def voxel_keys(points: Array, size: float) -> NDArray[np.int64]:
@@ -51,3 +51,25 @@ def voxel_downsample(points: ArrayLike, size: float | None, mode: Literal["first
     out = np.zeros((len(counts), P.shape[1]))
     np.add.at(out, inv, P)
     return out / counts[:, None]
+
+
+def voxel_downsample_stream(parts: Iterable[ArrayLike], size: float, batch_points: int = 2_000_000) -> Array:
+    """:func:`voxel_downsample` (``first``) of the concatenation of *parts*, holding about *batch_points* input
+    points at a time instead of all of them: each batch is reduced as it fills, then the reductions. Exactly
+    the one-shot result — the first point of a voxel overall is the first of the earliest batch that has
+    the voxel, and every reduction keeps the order of first occurrence."""
+    kept: list[Array] = []
+    batch: list[Array] = []
+    n = 0
+    for part in parts:
+        P = np.asarray(part, dtype=np.float64)
+        batch.append(P)
+        n += len(P)
+        if n >= batch_points:
+            kept.append(voxel_downsample(np.vstack(batch), size))
+            batch, n = [], 0
+    if batch:
+        kept.append(voxel_downsample(np.vstack(batch), size))
+    if not kept:
+        raise GeometryError("no points to downsample")
+    return voxel_downsample(np.vstack(kept), size) if len(kept) > 1 else kept[0]

@@ -112,6 +112,18 @@ def test_voxel_downsample_properties():
         voxel_downsample(P, -1.0)
 
 
+@pytest.mark.parametrize("batch", [1, 700, 2500, 10**9])
+def test_voxel_downsample_in_batches_is_the_one_shot_result(batch):
+    """Reducing batch by batch, then the reductions, keeps the very points and order of one reduction of the
+    whole (the first point of each voxel), whatever the batch size and however the parts split voxels."""
+    from registration.voxel import voxel_downsample_stream
+
+    rng = np.random.default_rng(9)
+    parts = [rng.uniform(-2, 2, size=(int(n), 3)) + rng.uniform(-1, 1, 3) for n in rng.integers(1, 400, 30)]
+    one = voxel_downsample(np.vstack(parts), 0.3)
+    assert np.array_equal(voxel_downsample_stream(iter(parts), 0.3, batch_points=batch), one)
+
+
 def test_too_few_pairs_within_gate_raises():
     """Clouds farther apart than the gate give a DegenerateInputError naming the gate."""
     P = np.random.default_rng(5).uniform(0, 1, size=(100, 3))
