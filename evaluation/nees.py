@@ -120,15 +120,18 @@ class Chain:
 
 
 def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
-               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0) -> Array:
+               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0,
+               reference_cov: Array | None = None) -> Array:
     """Per relation ``(scan a, scan b)`` with true ``a_T_b`` *truth*: rows (chain length in keyframes, NEES/dof,
     translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad, odometry
     path length between the keyframes m).
 
     *mu*, *cov*: :func:`fuse_steps`; *keyframe_of_scan*: the last keyframe at or before each scan;
     *scan_odometry* ``(N, 4, 4)`` and *keyframe_odometry* ``(K, 4, 4)``: the front end's odometry poses,
-    which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate (0: none). Relations
-    within one keyframe interval are left out."""
+    which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate (0: none);
+    *reference_cov* ``(3, 3)``: the relations' own error (:func:`evaluation.relations.reference_noise`), added to
+    the chain's (the test is then of ``e ~ N(0, Σ_chain + Σ_ref)``). Relations within one keyframe interval
+    are left out."""
     chain = Chain(mu, cov, drift_rad_per_m)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]  # odometry path length at each keyframe
     rows = []
@@ -144,6 +147,8 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
         est = G.inverse(A) @ T @ B
         AdB = G.adjoint(G.inverse(B), planar=True)
         S = AdB @ S @ AdB.T
+        if reference_cov is not None:
+            S = S + reference_cov
         e = G.se2_log(G.relative(delta, est))
         rows.append((kb - ka, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
                      float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[kb] - path[ka])))

@@ -36,7 +36,8 @@ from .trajectory import nearest_indices
 
 Array = NDArray[np.float64]
 
-__all__ = ["Relations", "RelationResult", "read_relations", "evaluate_relations", "DEFAULT_STAMP_TOL"]
+__all__ = ["Relations", "RelationResult", "ReferenceNoise", "read_relations", "evaluate_relations", "reference_noise",
+           "DEFAULT_STAMP_TOL"]
 
 DEFAULT_STAMP_TOL = 1e-3  # seconds; the benchmark stamps equal the log's ipc_timestamps to < 1e-5 s
 
@@ -154,3 +155,45 @@ def evaluate_relations(trajectory: Trajectory, relations: Relations, stamp_tol: 
         rot_max_deg=float(rot.max()) if rot.size else float("nan"),
         trans_errors=trans, rot_errors_deg=rot, used=used, stamp_tol=stamp_tol,
     )
+
+
+@dataclass(frozen=True)
+class ReferenceNoise:
+    """The relations' own error, from how well they close among themselves: per relation, the standard
+    deviation of each translation axis (m) and of the heading (rad), from *triangles* closed loops."""
+
+    sigma_translation_m: float
+    sigma_rotation_rad: float
+    triangles: int
+
+    def covariance(self) -> Array:
+        """``(3, 3)`` in the planar tangent order (x, y, θ)."""
+        return np.diag([self.sigma_translation_m**2, self.sigma_translation_m**2, self.sigma_rotation_rad**2])
+
+
+def reference_noise(relations: Relations, min_triangles: int = 20) -> ReferenceNoise | None:
+    """The relations' noise from their triangles: wherever the file holds a → b, b → c and a → c, the closure
+    ``(δ_ab δ_bc)⁻¹ δ_ac`` would be the identity for exact relations; with independent per-relation errors of
+    σ_t per axis and σ_θ its translation has variance 3σ_t² per axis and its angle 3σ_θ² (first order,
+    the lever arm of a heading error over a relation's length left out), so σ_t² = mean(|t|²) / 6 and
+    σ_θ² = mean(θ²) / 3. Planar relations; None with fewer than *min_triangles* triangles (no estimate).
+
+    A ground-truth relation file is a measurement too (Kümmerle et al. 2009 built theirs from manually
+    checked scan matching): a consistency test of an estimate against it (NEES) must add this covariance,
+    or the relations' error is charged to the estimate."""
+    key = {(round(float(a), 6), round(float(b), 6)): k for k, (a, b) in enumerate(zip(relations.t1, relations.t2))}
+    starting: dict[float, list[tuple[float, int]]] = {}
+    for (a, b), k in key.items():
+        starting.setdefault(a, []).append((b, k))
+    closures = []
+    for (a, b), k_ab in key.items():
+        for c, k_bc in starting.get(b, ()):
+            k_ac = key.get((a, c))
+            if k_ac is not None:
+                closures.append(geo.se2_log(geo.relative(relations.deltas[k_ab] @ relations.deltas[k_bc],
+                                                        relations.deltas[k_ac])))
+    if len(closures) < min_triangles:
+        return None
+    e = np.array(closures)
+    return ReferenceNoise(float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2) / 6.0)),
+                          float(np.sqrt(np.mean(e[:, 2] ** 2) / 3.0)), len(e))

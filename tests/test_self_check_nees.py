@@ -171,3 +171,51 @@ def test_a_constant_heading_rate_reads_back_from_the_heading_table_at_every_path
     for b in bins:
         assert b.rate_median_deg_per_m == pytest.approx(rate_deg, rel=0.05), b
         assert b.error_median_deg == pytest.approx(rate_deg * np.median(rows[(rows[:, 6] >= b.lo_m) & (rows[:, 6] < b.hi_m), 6]), rel=0.05)
+
+
+def _relations_of(truth: np.ndarray, pairs, sigma_m: float, sigma_rad: float, rng):  # type: ignore[no-untyped-def]
+    """Relations a_T_b of a trajectory, each with independent noise N(0, diag(σ², σ², σ_θ²)), stamps = indices."""
+    from evaluation.relations import Relations
+
+    deltas = np.array([G.relative(truth[a], truth[b]) @ G.se2_exp(rng.normal(0, [sigma_m, sigma_m, sigma_rad]))
+                       for a, b in pairs])
+    return Relations(np.array([float(a) for a, _ in pairs]), np.array([float(b) for _, b in pairs]), deltas)
+
+
+def test_the_relations_own_noise_is_read_from_the_triangles_they_close():
+    """Relations of one trajectory with independent errors of σ per axis and σ_θ: the closures of their
+    triangles give σ back (to the sampling error of a few hundred triangles); exact relations give 0; too
+    few triangles give no estimate."""
+    from evaluation.relations import reference_noise
+
+    rng = np.random.default_rng(5)
+    truth, _ = _noisy_chain(rng, 400, np.eye(3) * 1e-6)
+    pairs = [(a, a + L) for a in range(0, 390, 2) for L in (1, 2, 3)]
+    est = reference_noise(_relations_of(truth, pairs, 0.02, np.radians(0.3), rng))
+    assert est.triangles > 150
+    assert est.sigma_translation_m == pytest.approx(0.02, rel=0.15)
+    assert est.sigma_rotation_rad == pytest.approx(np.radians(0.3), rel=0.15)
+    exact = reference_noise(_relations_of(truth, pairs, 0.0, 0.0, rng))
+    assert exact.sigma_translation_m < 1e-12 and exact.sigma_rotation_rad < 1e-12
+    assert reference_noise(_relations_of(truth, [(a, a + 1) for a in range(100)], 0.02, 0.01, rng)) is None
+
+
+def test_a_noisy_reference_is_consistent_only_with_its_own_covariance_added():
+    """A consistent chain scored against relations that carry their own error: NEES/dof above 1 on short
+    chains without the reference's covariance, ≈ 1 with it (the test is of e ~ N(0, Σ_chain + Σ_ref))."""
+    from evaluation.relations import reference_noise
+
+    rng = np.random.default_rng(12)
+    K = 600
+    cov = np.diag([0.005**2, 0.003**2, np.radians(0.1) ** 2])
+    truth, edges = _noisy_chain(rng, K, cov)
+    mu, C = fuse_steps(K, edges)
+    pairs = [(a, a + L) for a in range(0, K - 3, 2) for L in (1, 2, 3)]
+    rel = _relations_of(truth, pairs, 0.02, np.radians(0.3), rng)
+    noise = reference_noise(rel)
+    P = np.array(pairs)
+    without = bin_by_length(chain_nees(mu, C, np.arange(K), truth, truth, P, rel.deltas))
+    with_ref = bin_by_length(chain_nees(mu, C, np.arange(K), truth, truth, P, rel.deltas, reference_cov=noise.covariance()))
+    assert all(b.nees_mean > 3.0 for b in without)
+    for b in with_ref:
+        assert b.nees_mean == pytest.approx(1.0, rel=0.3), b

@@ -197,6 +197,7 @@ def nees_cmd(
     relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
     heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
+    reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
     json_out: Path | None = _JSON,
 ) -> None:
     """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations, per chain
@@ -207,7 +208,7 @@ def nees_cmd(
     from core.errors import InputFileError
     from core.trajectory import read_node_stamps
     from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
-    from evaluation.relations import read_relations
+    from evaluation.relations import read_relations, reference_noise
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
     from slam.graph.posegraph import KINDS
@@ -241,10 +242,17 @@ def nees_cmd(
     pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
     if heading_drift is None:
         heading_drift = _run_heading_drift(run)
-    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)))
+    noise = reference_noise(rel) if reference else None
+    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)),
+                      None if noise is None else noise.covariance())
     bins = bin_by_length(rows)
     typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
                f"heading rate σ {heading_drift:g} °/m")
+    if noise is not None:
+        typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
+                   f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
+    elif reference:
+        typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
     typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
     for b in bins:
         span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
@@ -259,7 +267,10 @@ def nees_cmd(
             typer.echo(f"{span:>12} {h.n:>6} {h.error_median_deg:>8.2f} {h.error_p95_deg:>8.2f} {h.rate_median_deg_per_m:>8.4f} "
                        f"{h.rate_p95_deg_per_m:>8.4f} {h.sigma_median_deg:>8.2f}")
     _save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "bins": [b.as_dict() for b in bins],
-                          "heading_by_path": [h.as_dict() for h in by_path]})
+                          "heading_by_path": [h.as_dict() for h in by_path],
+                          "reference_noise": None if noise is None else {
+                              "sigma_translation_m": noise.sigma_translation_m,
+                              "sigma_rotation_deg": float(np.degrees(noise.sigma_rotation_rad)), "triangles": noise.triangles}})
 
 
 def _run_heading_drift(run: Path) -> float:
