@@ -13,6 +13,8 @@ from typing import Any
 
 import typer
 
+from .eval_io import JSON_OPTION, check_json, echo_pairs, fmt_num, save_json
+from .eval_nees import nees_cmd
 from .options import real
 
 
@@ -44,39 +46,6 @@ class _Fmt(str, Enum):
     log_odom = "log_odom"
 
 
-def fmt_num(v: Any) -> str:
-    """How numbers are printed: 10 significant digits (ints as ints)."""
-    if isinstance(v, (bool, str)) or v is None:
-        return str(v)
-    if isinstance(v, int):
-        return str(v)
-    return f"{float(v):.10g}"
-
-
-def _echo_pairs(pairs: dict[str, Any]) -> None:
-    for k, v in pairs.items():
-        typer.echo(f"{k}: {fmt_num(v)}")
-
-
-def _check_json(path: Path | None) -> None:
-    """Before any work: the --json path can be written."""
-    if path is not None:
-        from core.atomic import check_output_file
-
-        check_output_file(path)
-
-
-def _save_json(path: Path | None, obj: Any) -> None:
-    if path is None:
-        return
-    from core.atomic import atomic_open
-
-    with atomic_open(path, "w", encoding="utf-8") as fh:
-        json.dump(obj, fh, indent=2, default=float)
-        fh.write("\n")
-
-
-_JSON = typer.Option(None, "--json", help="Also write the full result as JSON to this path.")
 _STAMPS_HELP = "Stamps for a KITTI or g2o file: one per pose, or 'id stamp' lines."
 _EST_STAMPS = typer.Option(None, "--est-stamps", help=_STAMPS_HELP)
 _REF_STAMPS = typer.Option(None, "--ref-stamps", help=_STAMPS_HELP)
@@ -92,19 +61,19 @@ def ape_cmd(
     ref_format: _Fmt = typer.Option(_Fmt.auto, "--ref-format"),
     est_stamps: Path | None = _EST_STAMPS,
     ref_stamps: Path | None = _REF_STAMPS,
-    json_out: Path | None = _JSON,
+    json_out: Path | None = JSON_OPTION,
 ) -> None:
     """Absolute pose error (evo's definition): prints rmse, mean, median, max, std, min, sse."""
-    _check_json(json_out)
+    check_json(json_out)
     from evaluation.ape_rpe import evaluate_ape
     from slam.trajectory_io import read_trajectory
 
     res = evaluate_ape(read_trajectory(est, est_format.value, est_stamps), read_trajectory(ref, ref_format.value, ref_stamps),
                        align=align.value, relation=relation.value, max_diff=max_diff)
     typer.echo(f"metric: APE {res.relation} [{res.unit or 'unitless'}]")
-    _echo_pairs({k: res.stats[k] for k in ("rmse", "mean", "median", "max", "std", "min", "sse")})
+    echo_pairs({k: res.stats[k] for k in ("rmse", "mean", "median", "max", "std", "min", "sse")})
     typer.echo(f"pairs: {res.n_matched}")
-    _save_json(json_out, res.to_dict())
+    save_json(json_out, res.to_dict())
 
 
 def rpe_cmd(
@@ -121,10 +90,10 @@ def rpe_cmd(
     ref_format: _Fmt = typer.Option(_Fmt.auto, "--ref-format"),
     est_stamps: Path | None = _EST_STAMPS,
     ref_stamps: Path | None = _REF_STAMPS,
-    json_out: Path | None = _JSON,
+    json_out: Path | None = JSON_OPTION,
 ) -> None:
     """Relative pose error (evo's definition): prints rmse, mean, median, max, std, min, sse."""
-    _check_json(json_out)
+    check_json(json_out)
     from evaluation.ape_rpe import evaluate_rpe
     from slam.trajectory_io import read_trajectory
 
@@ -138,9 +107,9 @@ def rpe_cmd(
         raise InputFileError(est, None, f"no two of the {res.n_matched} poses associated with {ref} are --delta "
                              f"{fmt_num(d)} {delta_unit.value} apart: nothing to measure (give a smaller --delta)")
     typer.echo(f"metric: RPE {res.relation} [{res.unit or 'unitless'}] delta {fmt_num(d)} {delta_unit.value}")
-    _echo_pairs({k: res.stats[k] for k in ("rmse", "mean", "median", "max", "std", "min", "sse")})
+    echo_pairs({k: res.stats[k] for k in ("rmse", "mean", "median", "max", "std", "min", "sse")})
     typer.echo(f"pairs: {len(res.errors)}")
-    _save_json(json_out, res.to_dict())
+    save_json(json_out, res.to_dict())
 
 
 def relations_table(result: Any, dataset: str | None) -> list[str]:
@@ -170,10 +139,10 @@ def relations_cmd(
     traj_format: _Fmt = typer.Option(_Fmt.auto, "--format"),
     stamps: Path | None = typer.Option(None, "--stamps", help=_STAMPS_HELP),
     dataset: str | None = typer.Option(None, "--dataset", help="Dataset key for published numbers (default: from the file name)."),
-    json_out: Path | None = _JSON,
+    json_out: Path | None = JSON_OPTION,
 ) -> None:
     """Kümmerle relation metric: trans/rot mean ± std (abs and squared), missing-stamp count, published numbers."""
-    _check_json(json_out)
+    check_json(json_out)
     from evaluation.published import PUBLISHED, recognise_dataset
     from evaluation.relations import evaluate_relations, read_relations
     from slam.trajectory_io import read_trajectory
@@ -186,103 +155,10 @@ def relations_cmd(
                              f"--stamp-tol {stamp_tol} s): was it written from the same log?")
     ds = dataset or recognise_dataset(relations) or recognise_dataset(traj)
     out = res.to_dict()
-    _echo_pairs(out)
+    echo_pairs(out)
     for line in relations_table(res, ds):
         typer.echo(line)
-    _save_json(json_out, {**out, "dataset": ds, "published": PUBLISHED.get(ds) if ds else None})
-
-
-def nees_cmd(
-    run: Path = typer.Argument(..., help="A slam run folder (graph.g2o, node_stamps.txt, odometry.tum)."),
-    relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
-    stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
-    heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
-    reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
-    json_out: Path | None = _JSON,
-) -> None:
-    """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations, per chain
-    length (1 = consistent; above, overconfident; below, conservative)."""
-    _check_json(json_out)
-    import numpy as np
-
-    from core.errors import InputFileError
-    from core.trajectory import read_node_stamps
-    from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
-    from evaluation.relations import read_relations, reference_noise
-    from evaluation.trajectory import nearest_indices
-    from slam.graph import read_graph
-    from slam.graph.posegraph import KINDS
-    from slam.trajectory_io import read_trajectory
-
-    graph = read_graph(run / "graph.g2o")
-    if graph.dim != 2:
-        raise InputFileError(run / "graph.g2o", None, "is not a planar graph; the NEES table is for 2D runs")
-    a = graph.edge_arrays()
-    odo = np.flatnonzero(a.kinds == KINDS.index("odometry"))
-    edges = [(int(a.ii[e]), int(a.jj[e]), a.measurements[e], np.linalg.inv(a.information[e])) for e in odo]
-    try:
-        mu, cov = fuse_steps(graph.num_nodes, edges)
-    except ValueError as err:
-        raise InputFileError(run / "graph.g2o", None, str(err)) from None
-    node_t = read_node_stamps(run / "node_stamps.txt", graph.node_ids)
-    scans = read_trajectory(run / "odometry.tum")
-    kf_scan = np.searchsorted(node_t, scans.stamps + stamp_tol, side="right") - 1
-    ia, sa = nearest_indices(node_t, scans.stamps, stamp_tol)
-    if len(ia) != len(node_t):
-        raise InputFileError(run / "node_stamps.txt", None, "a keyframe stamp has no scan in odometry.tum")
-    kf_odom = scans.poses[sa]
-    rel = read_relations(relations)
-    i1, s1 = nearest_indices(rel.t1, scans.stamps, stamp_tol)
-    i2, s2 = nearest_indices(rel.t2, scans.stamps, stamp_tol)
-    both = np.intersect1d(i1, i2)
-    m1, m2 = dict(zip(i1, s1)), dict(zip(i2, s2))
-    keep = [r for r in both if kf_scan[m1[r]] >= 0 and kf_scan[m2[r]] >= 0]
-    if not keep:
-        raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
-    pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
-    if heading_drift is None:
-        heading_drift = _run_heading_drift(run)
-    noise = reference_noise(rel) if reference else None
-    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)),
-                      None if noise is None else noise.covariance())
-    bins = bin_by_length(rows)
-    typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
-               f"heading rate σ {heading_drift:g} °/m")
-    if noise is not None:
-        typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
-                   f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
-    elif reference:
-        typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
-    typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
-    for b in bins:
-        span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
-        typer.echo(f"{span:>12} {b.n:>6} {b.nees_mean:>9.3f} {b.nees_median:>8.3f} {b.rms_translation_m:>8.4f} "
-                   f"{b.sigma_translation_m:>8.4f} {b.rms_rotation_deg:>8.3f} {b.sigma_rotation_deg:>8.3f}")
-    by_path = heading_by_path(rows)
-    if by_path:
-        typer.echo("heading error by odometry path between the keyframes:")
-        typer.echo(f"{'path_m':>12} {'n':>6} {'med_deg':>8} {'p95_deg':>8} {'med_°/m':>8} {'p95_°/m':>8} {'σ_deg':>8}")
-        for h in by_path:
-            span = f"{h.lo_m:.0f}+" if not np.isfinite(h.hi_m) else f"{h.lo_m:.0f}-{h.hi_m:.0f}"
-            typer.echo(f"{span:>12} {h.n:>6} {h.error_median_deg:>8.2f} {h.error_p95_deg:>8.2f} {h.rate_median_deg_per_m:>8.4f} "
-                       f"{h.rate_p95_deg_per_m:>8.4f} {h.sigma_median_deg:>8.2f}")
-    _save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "bins": [b.as_dict() for b in bins],
-                          "heading_by_path": [h.as_dict() for h in by_path],
-                          "reference_noise": None if noise is None else {
-                              "sigma_translation_m": noise.sigma_translation_m,
-                              "sigma_rotation_deg": float(np.degrees(noise.sigma_rotation_rad)), "triangles": noise.triangles}})
-
-
-def _run_heading_drift(run: Path) -> float:
-    """The heading-rate σ (°/m) of the run's own configuration (``config.yaml``), or the default one."""
-    from core.errors import ConfigError
-    from core.yaml_config import load_yaml
-    from slam.pipeline.config import SlamConfig
-
-    try:
-        return load_yaml(SlamConfig, run / "config.yaml").loops.heading_drift_deg_per_m
-    except ConfigError:
-        return SlamConfig().loops.heading_drift_deg_per_m
+    save_json(json_out, {**out, "dataset": ds, "published": PUBLISHED.get(ds) if ds else None})
 
 
 def _node_gt_poses(graph: Any, gt: Path, node_stamps: Path | None, max_diff: float) -> Any:
@@ -317,10 +193,10 @@ def loops_cmd(
                                          help="True revisit distance in m (with --gt)."),
     min_separation: int = typer.Option(30, "--min-separation", min=1, help="Smallest node-index gap of a revisit (with --gt)."),
     max_diff: float = typer.Option(0.01, "--max-diff", parser=real(0.0), help="Stamp tolerance for --node-stamps (s)."),
-    json_out: Path | None = _JSON,
+    json_out: Path | None = JSON_OPTION,
 ) -> None:
     """Loop-closure precision (violated by ≤ 20 cm and ≤ 1° after optimisation); with --gt, precision and recall."""
-    _check_json(json_out)
+    check_json(json_out)
     from evaluation.loops import loop_edges_from_graph, score_against_truth, score_loops
     from slam.backends.crosscheck import load_solution
     from slam.graph import read_graph
@@ -339,7 +215,7 @@ def loops_cmd(
                                "non-consecutive nodes): nothing to score")
     s = score_loops(loops, P, trans_tol, rot_tol)
     out: dict[str, Any] = {"self": s.to_dict()}
-    _echo_pairs({"loops": s.n_loops, "correct": s.n_correct, "precision": s.precision})
+    echo_pairs({"loops": s.n_loops, "correct": s.n_correct, "precision": s.precision})
     if gt is not None:
         t = score_against_truth(loops, _node_gt_poses(graph, gt, node_stamps, max_diff), revisit_radius, min_separation,
                                 trans_tol, rot_tol)
@@ -349,9 +225,9 @@ def loops_cmd(
             raise InputFileError(gt, None, f"no node comes back within --revisit-radius {revisit_radius} m of one at "
                                  f"least --min-separation {min_separation} nodes earlier: recall is undefined")
         out["truth"] = t.to_dict()
-        _echo_pairs({"gt_true_positive": t.n_true_positive, "gt_precision": t.precision,
+        echo_pairs({"gt_true_positive": t.n_true_positive, "gt_precision": t.precision,
                      "gt_revisit_nodes": t.n_revisit_nodes, "gt_recall": t.recall})
-    _save_json(json_out, out)
+    save_json(json_out, out)
 
 
 def crosscheck_cmd(
@@ -359,10 +235,10 @@ def crosscheck_cmd(
     sol_a: Path = typer.Argument(..., help="First solution (g2o vertices by id, or TUM/KITTI in node order)."),
     sol_b: Path = typer.Argument(..., help="Second solution."),
     names: str = typer.Option("a,b", "--names", help="Labels of the two solutions, comma-separated."),
-    json_out: Path | None = _JSON,
+    json_out: Path | None = JSON_OPTION,
 ) -> None:
     """Both objectives (SE-Sync, GTSAM χ²) of two solutions and their pose differences, printed as JSON."""
-    _check_json(json_out)
+    check_json(json_out)
     from slam.backends.crosscheck import crosscheck, load_solution
     from slam.graph import read_graph
 
@@ -373,7 +249,7 @@ def crosscheck_cmd(
         "objective_rel_diff": out["objective_rel_diff"], "raw": out["raw"], "aligned": out["aligned"],
         "bbox_diagonal_m": out["bbox_diagonal_m"],
         "max_position_diff_percent_of_diagonal": out["max_position_diff_percent_of_diagonal"]}, default=float))
-    _save_json(json_out, out)
+    save_json(json_out, out)
 
 
 def report_cmd(
@@ -390,7 +266,7 @@ def report_cmd(
 
     od = out if out is not None else result_dir
     for name in ("report.html", "metrics.json"):
-        _check_json(od / name)
+        check_json(od / name)
 
     rep = write_run_report(result_dir, gt, relations, gt_map, out)
     for k, v in flatten_metrics(rep.metrics).items():

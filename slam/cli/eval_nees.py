@@ -1,0 +1,105 @@
+"""``slam eval nees``: the consistency of the front end's covariance, chain by chain, against relations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from .eval_io import JSON_OPTION, check_json, save_json
+from .options import real
+
+__all__ = ["nees_cmd"]
+
+
+def nees_cmd(
+    run: Path = typer.Argument(..., help="A slam run folder (graph.g2o, node_stamps.txt, odometry.tum)."),
+    relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
+    stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
+    heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
+    reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
+    json_out: Path | None = JSON_OPTION,
+) -> None:
+    """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations, per chain
+    length (1 = consistent; above, overconfident; below, conservative)."""
+    check_json(json_out)
+    import numpy as np
+
+    from core.errors import InputFileError
+    from core.trajectory import read_node_stamps
+    from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
+    from evaluation.relations import read_relations, reference_noise
+    from evaluation.trajectory import nearest_indices
+    from slam.graph import read_graph
+    from slam.graph.posegraph import KINDS
+    from slam.trajectory_io import read_trajectory
+
+    graph = read_graph(run / "graph.g2o")
+    if graph.dim != 2:
+        raise InputFileError(run / "graph.g2o", None, "is not a planar graph; the NEES table is for 2D runs")
+    a = graph.edge_arrays()
+    odo = np.flatnonzero(a.kinds == KINDS.index("odometry"))
+    edges = [(int(a.ii[e]), int(a.jj[e]), a.measurements[e], np.linalg.inv(a.information[e])) for e in odo]
+    try:
+        mu, cov = fuse_steps(graph.num_nodes, edges)
+    except ValueError as err:
+        raise InputFileError(run / "graph.g2o", None, str(err)) from None
+    node_t = read_node_stamps(run / "node_stamps.txt", graph.node_ids)
+    scans = read_trajectory(run / "odometry.tum")
+    kf_scan = np.searchsorted(node_t, scans.stamps + stamp_tol, side="right") - 1
+    ia, sa = nearest_indices(node_t, scans.stamps, stamp_tol)
+    if len(ia) != len(node_t):
+        raise InputFileError(run / "node_stamps.txt", None, "a keyframe stamp has no scan in odometry.tum")
+    kf_odom = scans.poses[sa]
+    rel = read_relations(relations)
+    i1, s1 = nearest_indices(rel.t1, scans.stamps, stamp_tol)
+    i2, s2 = nearest_indices(rel.t2, scans.stamps, stamp_tol)
+    both = np.intersect1d(i1, i2)
+    m1, m2 = dict(zip(i1, s1)), dict(zip(i2, s2))
+    keep = [r for r in both if kf_scan[m1[r]] >= 0 and kf_scan[m2[r]] >= 0]
+    if not keep:
+        raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
+    pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
+    if heading_drift is None:
+        heading_drift = _run_heading_drift(run)
+    noise = reference_noise(rel) if reference else None
+    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)),
+                      None if noise is None else noise.covariance())
+    bins = bin_by_length(rows)
+    typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
+               f"heading rate σ {heading_drift:g} °/m")
+    if noise is not None:
+        typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
+                   f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
+    elif reference:
+        typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
+    typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
+    for b in bins:
+        span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
+        typer.echo(f"{span:>12} {b.n:>6} {b.nees_mean:>9.3f} {b.nees_median:>8.3f} {b.rms_translation_m:>8.4f} "
+                   f"{b.sigma_translation_m:>8.4f} {b.rms_rotation_deg:>8.3f} {b.sigma_rotation_deg:>8.3f}")
+    by_path = heading_by_path(rows)
+    if by_path:
+        typer.echo("heading error by odometry path between the keyframes:")
+        typer.echo(f"{'path_m':>12} {'n':>6} {'med_deg':>8} {'p95_deg':>8} {'med_°/m':>8} {'p95_°/m':>8} {'σ_deg':>8}")
+        for h in by_path:
+            span = f"{h.lo_m:.0f}+" if not np.isfinite(h.hi_m) else f"{h.lo_m:.0f}-{h.hi_m:.0f}"
+            typer.echo(f"{span:>12} {h.n:>6} {h.error_median_deg:>8.2f} {h.error_p95_deg:>8.2f} {h.rate_median_deg_per_m:>8.4f} "
+                       f"{h.rate_p95_deg_per_m:>8.4f} {h.sigma_median_deg:>8.2f}")
+    save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "bins": [b.as_dict() for b in bins],
+                          "heading_by_path": [h.as_dict() for h in by_path],
+                          "reference_noise": None if noise is None else {
+                              "sigma_translation_m": noise.sigma_translation_m,
+                              "sigma_rotation_deg": float(np.degrees(noise.sigma_rotation_rad)), "triangles": noise.triangles}})
+
+
+def _run_heading_drift(run: Path) -> float:
+    """The heading-rate σ (°/m) of the run's own configuration (``config.yaml``), or the default one."""
+    from core.errors import ConfigError
+    from core.yaml_config import load_yaml
+    from slam.pipeline.config import SlamConfig
+
+    try:
+        return load_yaml(SlamConfig, run / "config.yaml").loops.heading_drift_deg_per_m
+    except ConfigError:
+        return SlamConfig().loops.heading_drift_deg_per_m
