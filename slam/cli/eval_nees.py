@@ -71,6 +71,9 @@ def nees_cmd(
     if noise is not None:
         typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
                    f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
+        if noise.sigma_translation_m < 1e-6:
+            typer.echo("  (they close exactly among themselves: differences of one trajectory, whose own error, if any, "
+                       "is a bias no triangle shows)")
     elif reference:
         typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
     typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
