@@ -22,7 +22,7 @@ A spec is YAML. Relative paths are relative to the spec's folder; log paths may 
 
 The settings are the explicit ones (default: one that changes nothing) × the sweep grid; the batch is
 every log × every setting, each run evaluated when it has a reference. Config values may be nested
-(``odometry: {max_range: 20}``) or dotted (``odometry.max_range: 20``). Everything is checked before any
+(``odometry: {max_range_m: 20}``) or dotted (``odometry.max_range_m: 20``). Everything is checked before any
 run: a mistake is one :class:`~core.errors.InputFileError` naming the spec and the entry
 (``logs[2].config``).
 """
@@ -138,7 +138,7 @@ def _sha_or_none(p: Path | None) -> str | None:
 
 
 def _flatten(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"odometry": {"max_range": 20}, "loops.icp_tolerance": 2e-4}`` → ``{"odometry.max_range": 20, "loops.icp_tolerance": 2e-4}``."""
+    """``{"odometry": {"max_range_m": 20}, "loops.icp_tolerance": 2e-4}`` → ``{"odometry.max_range_m": 20, "loops.icp_tolerance": 2e-4}``."""
     out: dict[str, Any] = {}
     for k, v in values.items():
         key = f"{prefix}{k}"

@@ -29,7 +29,7 @@ class OdometryStageConfig(_Model):
     method: Literal["auto", "kiss", "icp"] = "auto"
     use_wheel_odometry: bool = True
     icp_point_to_plane: bool = Field(True, description="our ICP odometry: point-to-line/plane steps instead of point-to-point")
-    icp_gates: tuple[float, ...] = Field((0.3,), description="2D, our ICP odometry: correspondence gates (m), coarse to fine, from the wheel guess")
+    icp_gates_m: tuple[float, ...] = Field((0.3,), description="2D, our ICP odometry: correspondence gates, coarse to fine, from the wheel guess")
     icp_tolerance: float = Field(5e-4, gt=0, description="2D, our ICP odometry: a gate stage ends when the pose increment is below this (m and rad)")
     icp_map_step_m: float = Field(0.0, ge=0, description="our ICP odometry: a scan joins the local map after this much motion (0 = every scan) ...")
     icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
@@ -40,8 +40,8 @@ class OdometryStageConfig(_Model):
     icp_wheel_prior_sigma: float | None = Field(None, gt=0, description="our ICP odometry with smooth wheel odometry: the wheel prediction enters each ICP step as a prior with the wheel_sigma_* model below (floors 1 cm, 5 mrad), weighed against point residuals of this σ (m); None = no prior (the default: it helps short stretches but lets drift grow, see docs/ODOMETRY.md)")
     unguided_window_m: float | None = Field(1.0, gt=0, description="2D, our ICP odometry without wheel odometry: each scan is first placed by a correlative search of ± this (m, x and y) around the constant-velocity guess on the local map, as far as the robot may stray from constant velocity between two scans; None = ICP from the guess alone")
     unguided_window_deg: float = Field(30.0, gt=0, description="... and ± this in heading (degrees)")
-    max_range: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
-    min_range: float = Field(0.05, ge=0)
+    max_range_m: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
+    min_range_m: float = Field(0.05, ge=0, description="2D: beams shorter than this are ignored for registration")
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
     # at the odometry's relative pose (registration.covariance), with this residual σ and gate.
     edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
@@ -95,9 +95,9 @@ class MappingStageConfig(_Model):
     submap_half_size_m: float = Field(12.0, gt=0, description="half side of a submap's square grid")
     recompose_every_keyframes: int = Field(50, ge=1, description="recompose the global map after an optimisation at most this often")
     params: MappingConfig = Field(default_factory=MappingConfig, description="GP / Fast-GPOM / squash parameters")
-    height_band: tuple[float, float] = Field((-0.5, 1.5), description="3D logs: z band (m, sensor frame) sliced into the 2D map")
+    height_band_m: tuple[float, float] = Field((-0.5, 1.5), description="3D logs: z band (sensor frame) sliced into the 2D map")
     virtual_beams: int = Field(720, ge=8, description="3D logs: beams of the virtual planar scan made from the height band")
-    point_map_voxel: float = Field(0.2, gt=0, description="3D logs: voxel size of the PLY point map")
+    point_map_voxel_m: float = Field(0.2, gt=0, description="3D logs: voxel size of the PLY point map")
 
 
 class SlamConfig(_Model):

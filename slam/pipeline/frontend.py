@@ -243,7 +243,7 @@ class FrontEnd:
             pts = frame.points
             r = np.linalg.norm(pts, axis=1)
             c = self.config.odometry
-            pts = pts[(r >= c.min_range) & (r <= c.max_range)]
+            pts = pts[(r >= c.min_range_m) & (r <= c.max_range_m)]
             vs = 0.02 if frame.is_planar else 0.3
             kf = Keyframe(self._count, len(self.track.stamps) - 1, frame.stamp, pose,
                           np.asarray(frame.base_T_sensor, dtype=float), voxel_downsample(pts, vs), frame)

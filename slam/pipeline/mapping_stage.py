@@ -113,7 +113,7 @@ class MapBuilder:
         """The planar scan of a keyframe (a virtual one for 3D clouds), limited to ``max_range_m``."""
         cap = self.config.max_range_m
         if not self.planar:
-            return planar_scan_from_cloud(kf.frame, self.config.height_band, self.config.virtual_beams, cap)
+            return planar_scan_from_cloud(kf.frame, self.config.height_band_m, self.config.virtual_beams, cap)
         return cap_range(kf.frame, cap)
 
     def _geometry_around(self, centres: Array) -> GridGeometry:

@@ -21,10 +21,10 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
         base = KissOdometryConfig.planar_default() if planar else KissOdometryConfig()
         # The pipeline computes its own keyframe-edge covariance, so KISS's per-scan one is skipped.
         kc = base.model_copy(update={"use_wheel_odometry": c.use_wheel_odometry, "compute_covariance": False,
-                                     "max_range": c.max_range if planar else base.max_range})
+                                     "max_range": c.max_range_m if planar else base.max_range})
         return KissOdometry(kc)
-    # Planar: one 0.3 m gate from the wheel guess by default (config.odometry.icp_gates).
-    icp_cfg = IcpConfig(gates=c.icp_gates, max_iterations=30, tol_translation=c.icp_tolerance, tol_rotation=c.icp_tolerance,
+    # Planar: one 0.3 m gate from the wheel guess by default (config.odometry.icp_gates_m).
+    icp_cfg = IcpConfig(gates=c.icp_gates_m, max_iterations=30, tol_translation=c.icp_tolerance, tol_rotation=c.icp_tolerance,
                         robust="cauchy", robust_scale=0.05, workers=1) if planar else IcpConfig(
                         gates=(1.5, 0.6, 0.3), voxel_size=0.5, robust="cauchy", robust_scale=0.2)
     return IcpOdometry(IcpOdometryConfig(icp=icp_cfg, map_scans=10, point_to_plane=c.icp_point_to_plane,
@@ -34,7 +34,7 @@ def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
                                          alternative_start_m=c.icp_alternative_start_m,
                                          alternative_start_rad=c.icp_alternative_start_rad,
                                          map_voxel_size=0.03 if planar else 0.3,
-                                         max_range=c.max_range if planar else 100.0, min_range=c.min_range,
+                                         max_range=c.max_range_m if planar else 100.0, min_range=c.min_range_m,
                                          use_wheel_odometry=c.use_wheel_odometry,
                                          unguided_window_m=c.unguided_window_m if planar else None,
                                          unguided_window_rad=float(np.radians(c.unguided_window_deg)),

@@ -127,7 +127,7 @@ def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: Slam
         if occ_map is not None:
             export_map(occ_map, tmp, config.mapping.params.occupied_thresh, config.mapping.params.free_thresh)
         if not result.planar:
-            _write_ply(tmp / "points.ply", result, config.mapping.point_map_voxel)
+            _write_ply(tmp / "points.ply", result, config.mapping.point_map_voxel_m)
         _write_mcap(tmp / "result.mcap", result, occ_map)
         (tmp / "config.yaml").write_text(config.to_yaml())
         (tmp / "summary.json").write_text(summary(time.perf_counter() - t0).model_dump_json(indent=2) + "\n")
