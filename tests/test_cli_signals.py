@@ -13,6 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 
@@ -138,3 +139,51 @@ def test_a_temporary_folder_too_long_for_the_stage_sockets_is_one_line_naming_it
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and str(deep) in lines[0] and "TMPDIR" in lines[0], stderr
     assert not out.exists()
+
+
+def test_a_ctrl_c_that_c_code_swallowed_stops_the_run_at_the_next_frame():
+    """A SIGINT whose KeyboardInterrupt is raised inside a callback from C (libc's qsort here; numba's LLVM
+    object cache in the wild) is printed as "Exception ignored" and lost; the handler also recorded it, so
+    the frame loop raises it again at its next frame instead of running to the end of the log."""
+    import ctypes
+    import ctypes.util
+
+    from core.frame import Frame
+    from slam.cli import signals
+    from slam.pipeline.config import SlamConfig
+    from slam.pipeline.front_process import run_front_end
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    compare = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int))
+    interrupted = []
+
+    def cmp(a, b):  # type: ignore[no-untyped-def]
+        if not interrupted:
+            interrupted.append(True)
+            os.kill(os.getpid(), signal.SIGINT)  # the handler raises here, inside the C callback
+        return a[0] - b[0]
+
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 181)
+    ranges = 3.0 + np.sin(3 * angles)
+    pts = np.c_[ranges * np.cos(angles), ranges * np.sin(angles)]
+    seen: list[int] = []
+
+    def frames():  # type: ignore[no-untyped-def]
+        for k in range(30):
+            if k == 3:
+                values = (ctypes.c_int * 5)(5, 1, 4, 2, 3)
+                # The KeyboardInterrupt raised in the comparison is printed and dropped; qsort returns here.
+                libc.qsort(values, 5, ctypes.sizeof(ctypes.c_int), compare(cmp))
+            yield Frame(float(k), pts, k, angles, ranges)
+
+    cfg = SlamConfig.model_validate({"stage_processes": False})
+    # As from a terminal (a test worker may run with SIGINT ignored, which terminations() leaves alone).
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with signals.terminations() as received:
+            with pytest.raises(KeyboardInterrupt):
+                run_front_end(frames(), cfg, lambda *item: None, lambda n, frame: seen.append(n))
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert interrupted and received == [signal.SIGINT]
+    assert seen == [1, 2, 3]  # frames 0, 1, 2 ran; frame 3's check raised the swallowed Ctrl-C

@@ -1,4 +1,4 @@
-"""SIGTERM and SIGHUP end a command the way Ctrl-C does.
+"""SIGINT, SIGTERM and SIGHUP end a command the same way.
 
 Python's default for SIGTERM and SIGHUP is to die at once: no ``finally`` runs, so the stage processes,
 multiprocessing's resource tracker and forkserver, its ``/tmp/pymp-*`` folder and a half-written
@@ -6,7 +6,10 @@ multiprocessing's resource tracker and forkserver, its ``/tmp/pymp-*`` folder an
 :class:`Terminated`, a ``KeyboardInterrupt``, in the main thread instead: every clean-up written for
 Ctrl-C (closing the stage processes, removing temporaries, holding the signal back while a finished
 folder is moved in) then runs for them too, and the command exits with 128 + the signal number
-(130 SIGINT, 143 SIGTERM, 129 SIGHUP), as a shell reports a process killed by it.
+(130 SIGINT, 143 SIGTERM, 129 SIGHUP), as a shell reports a process killed by it. SIGINT raises
+KeyboardInterrupt as Python's own handler does, but through the same handler, so that every signal is also
+recorded in :mod:`core.interrupts`: a KeyboardInterrupt that C code swallowed is raised again at the
+pipeline's next frame.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import signal
 import threading
 from typing import Iterator
 
+from core import interrupts
 from core.atomic import HELD_SIGNALS
 
 __all__ = ["Terminated", "terminations", "ignore_held_signals", "exit_code", "message"]
@@ -33,8 +37,9 @@ class Terminated(KeyboardInterrupt):
 
 @contextlib.contextmanager
 def terminations() -> Iterator[list[int]]:
-    """Within the block SIGTERM and SIGHUP raise :class:`Terminated`; yields the list of the signals that
-    did (the first one decides the exit code). Outside the main thread nothing changes."""
+    """Within the block SIGINT raises KeyboardInterrupt and SIGTERM and SIGHUP raise :class:`Terminated`, each
+    recorded (:mod:`core.interrupts`); yields the list of the signals that did (the first one decides the exit
+    code). Outside the main thread nothing changes."""
     received: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield received
@@ -42,18 +47,21 @@ def terminations() -> Iterator[list[int]]:
 
     def handler(signum: int, frame) -> None:  # type: ignore[no-untyped-def]
         received.append(signum)
+        interrupts.record(signum)
         if len(received) == 1:  # once: a second signal must not interrupt the clean-up of the first
-            raise Terminated(signum)
+            raise KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
 
     previous = {}
-    for s in _TERMINATING:
+    for s in (signal.SIGINT, *_TERMINATING):
         if signal.getsignal(s) is not signal.SIG_IGN:  # nohup's ignored SIGHUP stays ignored
             previous[s] = signal.signal(s, handler)
     try:
-        yield received
+        with interrupts.watching():
+            yield received
     finally:
         for s, h in previous.items():
-            signal.signal(s, h)
+            if signal.getsignal(s) is handler:  # not when ignore_held_signals has taken over meanwhile
+                signal.signal(s, h)
 
 
 def ignore_held_signals() -> None:

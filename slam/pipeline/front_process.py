@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator
 
+from core import interrupts
 from core.errors import GpslamError
 from core.frame import Frame
 
@@ -156,6 +157,7 @@ def run_front_end(frames: Iterable[Frame], config: SlamConfig, on_keyframe: Call
     try:
         n = 0
         for frame in frames:
+            interrupts.check()  # a Ctrl-C that C code swallowed stops the run here
             if config.max_scans is not None and n >= config.max_scans:
                 break
             if front is None:
