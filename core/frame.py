@@ -36,7 +36,7 @@ class Frame:
         base_T_sensor: pose of the sensor on the robot base (identity when unknown).
         max_range: largest range the sensor reports (m); ``inf`` when unknown.
         min_range: smallest valid range (m).
-        source: where the scan came from, e.g. ``intel.clf.bz2:line 17`` (for error messages).
+        source: where the scan came from, e.g. ``floor2.clf.bz2:line 17`` (for error messages).
     """
 
     stamp: float

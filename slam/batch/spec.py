@@ -4,10 +4,10 @@ A spec is YAML. Relative paths are relative to the spec's folder; log paths may 
 
     config: base.yaml            # base configuration: a YAML file, or inline values (optional)
     logs:
-      - ../data/intel.clf.bz2    # a path or glob, or a mapping:
-      - log: ../../shared/data/slam2d_devset/mit-killian/mit-killian_reconstructed_stamps.clf.gz
-        name: killian            # the run folder's name (default: the log's stem)
-        relations: ../../shared/data/slam2d_devset/mit-killian/mit-killian.relations
+      - logs/floor2.clf.bz2      # a path or glob, or a mapping:
+      - log: logs/campus_run3.bag
+        name: campus             # the run folder's name (default: the log's stem)
+        relations: logs/campus_run3.relations
         gt: null                 # or a ground-truth trajectory (default: <stem>.relations beside the log,
                                  # or the ground truth the log's frames carry)
         topic: null              # sensor topic (MCAP / ROS 1)
@@ -328,7 +328,7 @@ def _beside(entries: list[LogEntry], stem: Callable[[Path], str]) -> list[LogEnt
 
 
 def load_spec(path: str | os.PathLike[str], stem: Callable[[Path], str]) -> BatchSpec:
-    """Read and check a spec file (module docstring). *stem* names a log's run folder (``intel.clf.bz2`` → ``intel``)."""
+    """Read and check a spec file (module docstring). *stem* names a log's run folder (``floor2.clf.bz2`` → ``floor2``)."""
     import yaml
 
     spec = Path(path)

@@ -5,7 +5,7 @@ References, in this order of preference:
 * given on the command line: ``--relations FILE`` (Kümmerle et al. 2009 relations) and/or
   ``--gt FILE`` (a TUM/KITTI trajectory, or a log whose frames carry ground truth); they
   replace the search;
-* found beside the log: ``<stem>.relations`` (``data/intel.clf.bz2`` → ``data/intel.relations``);
+* found beside the log: ``<stem>.relations`` (``logs/floor2.clf.bz2`` → ``logs/floor2.relations``);
 * in the log itself: the ground-truth pose of each frame (simulated MCAP logs, KITTI sequences
   with ``poses/NN.txt``), recorded while the run streams the frames (no second pass), written as
   ``ground_truth.tum`` into the run folder; a simulated log's ground-truth map
@@ -31,7 +31,7 @@ _LOG_SUFFIXES = (".clf", ".log", ".carmen", ".txt", ".mcap", ".bag", ".bin")
 
 
 def log_stem(log: Path) -> str:
-    """The log's name without compression and format suffixes: ``intel.clf.bz2`` → ``intel``."""
+    """The log's name without compression and format suffixes: ``floor2.clf.bz2`` → ``floor2``."""
     name = log.name
     for suffix in _COMPRESSED:
         if name.lower().endswith(suffix):
