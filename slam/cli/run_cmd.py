@@ -71,7 +71,7 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     import resource
     import time
 
-    from core.run_summary import RunSummary, read_run_summary
+    from core.run_summary import RunSummary
     from slam.logs import SkipLog, open_log
     from slam.pipeline.outputs import summarise, write_outputs
     from slam.pipeline.run import run_slam
@@ -111,12 +111,15 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
     wall_run = time.perf_counter() - t0
     evaluation: list[str] = []
 
+    written: list[RunSummary] = []
+
     def summary(outputs_s: float) -> RunSummary:
         # Every process's peak, summed: an upper bound on the memory the run held at any one time.
         peak = peak_main_mb() if peak_main_mb is not None else None
-        return summarise(result, str(log), cfg, wall_run, time.perf_counter() - t0, outputs_s,
-                         peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-                         skipped)
+        written.append(summarise(result, str(log), cfg, wall_run, time.perf_counter() - t0, outputs_s,
+                                 peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                                 skipped))
+        return written[0]
 
     def evaluate(folder: Path) -> None:
         """The evaluation report, before the move into *out*."""
@@ -124,10 +127,10 @@ def run_log(log: Path, out: Path, cfg, topic: str | None = None, quiet: bool = F
             evaluation.extend(write_evaluation(folder, reference, recorder, result.stamps, str(out)))
 
     write_outputs(out, result, result.occupancy_map, cfg, summary, before_commit=evaluate)
-    written = read_run_summary(out / "summary.json").model_dump(mode="json")
+    out_summary = written[0].model_dump(mode="json")
     if reference is not None:
-        written["evaluation"] = evaluation
-    return written
+        out_summary["evaluation"] = evaluation
+    return out_summary
 
 
 def _loop_closures(result) -> int:  # type: ignore[no-untyped-def]

@@ -111,7 +111,7 @@ def record_front_end(frames: Iterable[Frame], config: SlamConfig,
     edges: list[OdometryEdge | None] = []
     wheels: list[WheelEdge | None] = []
     gt: list[Array] = []  # the ground truth of every scan, while every scan has one
-    all_gt = [True]
+    all_gt = True
 
     def keep(kf: Keyframe, edge: OdometryEdge | None, wheel: WheelEdge | None) -> None:
         keyframes.append(kf)
@@ -119,10 +119,11 @@ def record_front_end(frames: Iterable[Frame], config: SlamConfig,
         wheels.append(wheel)
 
     def seen(n: int, frame: Frame) -> None:
-        if all_gt[0] and frame.ground_truth is None:
-            all_gt[0] = False
+        nonlocal all_gt
+        if all_gt and frame.ground_truth is None:
+            all_gt = False
             gt.clear()
-        elif all_gt[0]:
+        elif all_gt:
             gt.append(np.asarray(frame.ground_truth, dtype=float))
         if progress is not None:
             progress(n, len(keyframes))
@@ -136,7 +137,7 @@ def record_front_end(frames: Iterable[Frame], config: SlamConfig,
         planar=keyframes[0].frame.is_planar, keyframes=keyframes, edges=edges, wheel_edges=wheels,
         stamps=np.asarray(tr.stamps, dtype=float), odometry=np.asarray(tr.odom_poses, dtype=float),
         scan_keyframe=np.asarray(tr.keyframe, dtype=np.int64),
-        ground_truth=np.asarray(gt, dtype=float).reshape(-1, 4, 4) if all_gt[0] else None,
+        ground_truth=np.asarray(gt, dtype=float).reshape(-1, 4, 4) if all_gt else None,
         time_s=time.perf_counter() - t0)
 
 

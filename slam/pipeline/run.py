@@ -90,14 +90,16 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
     t_start = time.perf_counter()
     times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
     keyframes: list[Keyframe] = []
-    stages: list = []  # the loop closer + back end and the mapping stage, made for the first keyframe's dimension
+    # Loop closure + back end and the mapping stage, made for the first keyframe's dimension.
+    graph: OnlineGraph | None = None
+    mapper = None
 
     def add_keyframe(kf: Keyframe, edge, wheel) -> None:  # type: ignore[no-untyped-def]
-        if not stages:
+        nonlocal graph, mapper
+        if graph is None:
             planar = kf.frame.is_planar
-            stages.extend([OnlineGraph(config.loops, config.backend, planar),
-                           start_mapping(config.mapping, planar, config.stage_processes)])
-        graph, mapper = stages
+            graph = OnlineGraph(config.loops, config.backend, planar)
+            mapper = start_mapping(config.mapping, planar, config.stage_processes)
         keyframes.append(kf)
         new = graph.add(keyframes, edge, wheel)
         t5 = time.perf_counter()
@@ -109,14 +111,13 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
 
     def on_scan(n: int, _frame) -> None:  # type: ignore[no-untyped-def]
         if progress is not None:
-            loops = len(stages[0].loops) if stages else 0
+            loops = len(graph.loops) if graph is not None else 0
             progress(Progress(n, len(keyframes), loops, time.perf_counter() - t_start))
 
     try:
         summary = run_front_end(frames, config, add_keyframe, on_scan)
-        if not keyframes:
+        if graph is None or mapper is None:
             raise GpslamError("the log yielded no scans")
-        graph, mapper = stages
         planar = keyframes[0].frame.is_planar
         t4 = time.perf_counter()
         kf_poses = graph.finish()
@@ -131,8 +132,8 @@ def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] |
         else:
             times["mapping_s"] += time.perf_counter() - t6
     finally:
-        if stages:
-            stages[1].close()
+        if mapper is not None:
+            mapper.close()
     times["odometry_s"] = summary.odometry_s
     times.update(graph.times)
     tr = summary.track
