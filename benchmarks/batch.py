@@ -2,7 +2,7 @@
 local Ray of 2 CPUs. Prints ONE JSON object.
 
 The runs: two bundled logs (``data/intel.clf.bz2`` cut at 5000 scans and the whole ``data/mit-csail.clf.bz2``,
-1988 scans, so that each run takes about as long) × two settings (``odometry.icp_tolerance`` 5e-4, the
+1988 scans, so that each run takes about as long) × two settings (``odometry.icp_2d.icp.tol_translation_m`` 5e-4, the
 default, and 6e-4), every output written and evaluated against the relations beside the log, as
 ``slam run --eval`` does.
 
@@ -49,7 +49,7 @@ def _spec(path: Path, intel_scans: int, csail_scans: int) -> Path:
     config: {{max_scans: {intel_scans}}}
   - log: {REPO / 'data' / 'mit-csail.clf.bz2'}
     config: {{max_scans: {csail_scans}}}
-sweep: [odometry.icp_tolerance=0.0005:0.0006:2]
+sweep: [odometry.icp_2d.icp.tol_translation_m=0.0005:0.0006:2]
 """)
     return path
 

@@ -132,7 +132,7 @@ def bench_world(name: str, world, n_scans: int | None, every: int, exact: bool,
         f"in {t_sim:.1f} s, mapping {len(frames)}")
     geom = GridGeometry((float(world.origin_xy[0]), float(world.origin_xy[1])), world.resolution, world.shape)
     gt = world.classes()
-    cfg = MappingConfig(resolution=res)
+    cfg = MappingConfig(resolution_m=res)
     out: dict = {"resolution": res, "grid": list(world.shape), "scans_simulated": len(slog), "scans_mapped": len(frames),
                  "seed": SEED, "robot_radius_m": radius, "reachable_fraction": reach, "tour_length_m": length,
                  "tour_coverage": tour_coverage, "simulate_s": t_sim, "paper_auc_fastgpom": PAPER_AUC.get(name)}
@@ -198,7 +198,7 @@ def bench_recompose(frames, res: float, n_submaps: int = 100, seed: int = 5) -> 
     poses = np.array([f.ground_truth for f in frames])
     xy = poses[:, :2, 3]
     geom = GridGeometry.covering(xy.min(0), xy.max(0), res, margin=6.0)
-    fuser = SubmapFuser(geom, MappingConfig(resolution=res), submap_half_size=5.0)
+    fuser = SubmapFuser(geom, MappingConfig(resolution_m=res), submap_half_size=5.0)
     reps = (n_submaps + len(frames) - 1) // len(frames)
     k = 0
     for _ in range(reps):

@@ -63,7 +63,7 @@ KITTI_MINI = REPO.parent / "shared" / "data" / "kitti_mini" / "sequences"
 KITTI_MINI_SEQUENCES = ("00", "01", "07", "10")
 INTEL = REPO / "data" / "intel.clf.bz2"
 INTEL_REL = REPO / "data" / "intel.relations"
-FIXED = dict(max_iterations=300, tol_translation=1e-10, tol_rotation=1e-10, robust="none")
+FIXED = dict(max_iterations=300, tol_translation_m=1e-10, tol_rotation_rad=1e-10, robust="none")
 
 
 def _err(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
@@ -89,7 +89,7 @@ def compare_open3d(src: np.ndarray, tgt: np.ndarray, init: np.ndarray, gate: flo
     ps, pt = _pcd(src), _pcd(tgt)
     crit = reg.ICPConvergenceCriteria(relative_fitness=1e-12, relative_rmse=1e-12, max_iteration=300)
     est = reg.TransformationEstimationPointToPoint()
-    cfg = IcpConfig(gates=(gate,), **FIXED)
+    cfg = IcpConfig(gates_m=(gate,), **FIXED)
     t_o, t_oi, t_u = [], [], []
     ro = ru = None
     for _ in range(reps):
@@ -229,9 +229,9 @@ def bench_kitti(frames, reps: int) -> dict:
         S, T = voxel_downsample(frames[i + 1].points, 0.2), voxel_downsample(frames[i].points, 0.2)
         pairs.append(compare_open3d(S, T, np.eye(4), 1.0, reps, truth))
         t0 = time.perf_counter()
-        tgt = IcpTarget(frames[i].points, voxel_size=0.3, normal_neighbors=20)
+        tgt = IcpTarget(frames[i].points, voxel_m=0.3, normal_neighbors=20)
         r = icp_point_to_plane(voxel_downsample(frames[i + 1].points, 0.3), tgt, np.eye(4),
-                               IcpConfig(gates=(1.0, 0.5, 0.3), max_iterations=60))
+                               IcpConfig(gates_m=(1.0, 0.5, 0.3), max_iterations=60))
         e_m, e_deg = _err(truth, r.transform)
         estimates.append(r.transform)
         p2pl.append({"pair": f"{i + 1}->{i + 2}", "err_m": e_m, "err_deg": e_deg,
@@ -293,7 +293,7 @@ def _ours_point_to_plane(src: np.ndarray, tgt: np.ndarray, reps: int) -> tuple[n
         target, T = IcpTarget(tgt, normal_neighbors=20), np.eye(4)
         # 60 iterations per gate, as Open3D's loop below (ours caps all stages at once)
         for gate in (1.0, 0.5, 0.3):
-            T = icp_point_to_plane(src, target, T, IcpConfig(gates=(gate,), max_iterations=60)).transform
+            T = icp_point_to_plane(src, target, T, IcpConfig(gates_m=(gate,), max_iterations=60)).transform
         best = min(best, time.perf_counter() - t0)
     return T, best
 
@@ -375,8 +375,8 @@ def bench_compiled_point_to_line(frames, n_pairs: int, reps: int, point_to_point
 
     align = icp if point_to_point else p2l.icp_point_to_plane
 
-    cfg = IcpConfig(gates=(1.0, 0.4, 0.15), robust="cauchy", robust_scale=0.06, sigma=0.03, max_iterations=40,
-                    tol_translation=1e-4, tol_rotation=1e-4, normal_neighbors=8, workers=1)
+    cfg = IcpConfig(gates_m=(1.0, 0.4, 0.15), robust="cauchy", robust_scale_m=0.06, sigma_m=0.03, max_iterations=40,
+                    tol_translation_m=1e-4, tol_rotation_rad=1e-4, normal_neighbors=8, workers=1)
     idx = np.linspace(3, len(frames) - 2, n_pairs).astype(int)
     times = {True: [], False: []}
     diffs = []
@@ -521,7 +521,7 @@ def bench_nees(trials: int = 200, sigma: float = 0.01) -> dict:
     # 2D line model
     room = np.array([[0, 0, 8, 0], [8, 0, 8, 5], [8, 5, 0, 5], [0, 5, 0, 0], [3, 0, 3, 2.5], [5, 5, 6.5, 3.5]], float)
     tgt = IcpTarget(_dense(room, 0.002))
-    cfg = IcpConfig(gates=(0.3, 0.1), sigma=sigma, tol_translation=1e-9, tol_rotation=1e-9)
+    cfg = IcpConfig(gates_m=(0.3, 0.1), sigma_m=sigma, tol_translation_m=1e-9, tol_rotation_rad=1e-9)
     v = []
     for _ in range(trials):
         T = geo.se2_exp(rng.normal(size=3) * [0.05, 0.05, 0.02])
@@ -541,7 +541,7 @@ def bench_nees(trials: int = 200, sigma: float = 0.01) -> dict:
     half = np.array([1.5, 1.0, 1.0])
     inner = (np.sum(np.abs(np.abs(cand) - half) < 0.1, axis=1) <= 1)
     cand = cand[inner]
-    cfg = IcpConfig(gates=(0.3, 8.0 * sigma3), sigma=sigma3, tol_translation=1e-9, tol_rotation=1e-9)
+    cfg = IcpConfig(gates_m=(0.3, 8.0 * sigma3), sigma_m=sigma3, tol_translation_m=1e-9, tol_rotation_rad=1e-9)
     v = []
     for _ in range(trials):
         T = geo.se3_exp(rng.normal(size=6) * [0.02, 0.02, 0.02, 0.01, 0.01, 0.01])
@@ -553,7 +553,7 @@ def bench_nees(trials: int = 200, sigma: float = 0.01) -> dict:
     out["3d_plane_model_time_s"] = time.perf_counter() - t0
     # point model with known correspondences (well separated points, noise on both sides)
     for dim in (2, 3):
-        cfg = IcpConfig(gates=(0.5,), covariance_model="point", sigma=sigma, tol_translation=1e-10, tol_rotation=1e-10)
+        cfg = IcpConfig(gates_m=(0.5,), covariance_model="point", sigma_m=sigma, tol_translation_m=1e-10, tol_rotation_rad=1e-10)
         v = []
         for _ in range(trials):
             T = (geo.se2_exp(rng.normal(size=3) * [0.05, 0.05, 0.02]) if dim == 2

@@ -39,7 +39,7 @@ def main() -> None:
 
     # 3. Build the three maps from the same scans at the true poses, and score them.
     for name, cls in (("fastgpom", FastGPOM), ("gpom", ClassicGPOM), ("logodds", LogOddsGrid)):
-        mapper = cls(geometry, MappingConfig(method=name, resolution=world.resolution))
+        mapper = cls(geometry, MappingConfig(method=name, resolution_m=world.resolution))
         t0 = time.perf_counter()
         for f in frames:
             mapper.update(f, f.ground_truth)

@@ -17,7 +17,7 @@ class GPConfig(_Model):
     nu: float = 3.5
     hyperparameters: Literal["fit_first_frame", "fixed"] = "fit_first_frame"
     #: start values of the fit, or the values used when ``fixed`` (the reference code's constants)
-    length_scale: float = 1.90
+    length_scale_m: float = 1.90
     sigma_f: float = 8.13
     sigma_n: float = 0.226
     #: at most this many training samples (thinned by beam) enter the marginal-likelihood fit
@@ -28,7 +28,7 @@ class GPConfig(_Model):
 class FastGPOMConfig(_Model):
     """Fast-GPOM (Yuan et al. 2018, Alg. 3)."""
 
-    free_step: float | None = Field(None, description="d, spacing of free samples along a beam (m); None = resolution")
+    free_step_m: float | None = Field(None, description="d, spacing of free samples along a beam (m); None = resolution_m")
     stop_before_hit: float = Field(1.5, description="free samples stop this many d before the hit")
     region_a_mean: float = -1.0
     region_a_variance: float = 0.1
@@ -45,7 +45,7 @@ class GPOMConfig(_Model):
 
     #: the exact GP costs O(n³ + n²·cells) per scan: every 12th beam and free samples every 0.3 m keep
     #: n ≈ 250–450 training points for the 667-beam laser (see mapping/README.md)
-    free_step: float = 0.3
+    free_step_m: float = 0.3
     stop_before_hit: float = 1.5
     beam_stride: int = 12
 
@@ -61,7 +61,7 @@ class LogOddsConfig(_Model):
 
 class MappingConfig(_Model):
     method: Literal["fastgpom", "gpom", "logodds"] = "fastgpom"
-    resolution: float = 0.05
+    resolution_m: float = 0.05
     #: probit squash p = Φ((αμ + β)/√(1 + α²σ²)) (Yuan et al. 2018 eq. 6)
     squash_alpha: float = 100.0
     squash_beta: float = 0.0

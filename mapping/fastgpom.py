@@ -97,7 +97,7 @@ class FastGPOM:
 
     @property
     def free_step(self) -> float:
-        return self.config.fastgpom.free_step or self.grid.geometry.resolution
+        return self.config.fastgpom.free_step_m or self.grid.geometry.resolution
 
     def local_estimate(self, frame: Frame, world_T_base: Array
                        ) -> tuple[slice, slice, NDArray[np.int64], Array, Array] | None:

@@ -62,7 +62,7 @@ def initial_hyperparameters(cfg: GPConfig, X: Array, y: Array, beams: NDArray[np
     on sparse outdoor scans the likelihood's optimum can be a smooth, noisy model (ℓ ≈ 13–17 m,
     σf ≈ σn) that predicts most hits as free, and the map then has no walls.
     """
-    start = GPHyperparameters(cfg.nu, cfg.length_scale, cfg.sigma_f, cfg.sigma_n)
+    start = GPHyperparameters(cfg.nu, cfg.length_scale_m, cfg.sigma_f, cfg.sigma_n)
     if cfg.hyperparameters == "fixed" or len(X) < 3:
         return start
     if len(X) > cfg.fit_max_points:

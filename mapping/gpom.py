@@ -4,7 +4,7 @@ Per scan: one exact GP trained on every hit (+1) and free (−1) sample of the s
 cell of the local window (the disc of the scan's longest range around the sensor); the local
 (μ, σ²) is BCM-fused into the global grid. Cells behind walls are predicted too — the defect the
 Fast-GPOM paper shows in its Fig. 1. To keep the exact GP tractable the training set uses every
-``beam_stride``-th beam and a free-sample spacing ``free_step`` (see mapping/README.md).
+``beam_stride``-th beam and a free-sample spacing ``free_step_m`` (see mapping/README.md).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ class ClassicGPOM:
     def training_set(self, frame: Frame) -> tuple[Array, Array, float, NDArray[np.int64]]:
         """Hits (+1) and free samples (−1) in the sensor frame, the longest beam (m), each sample's beam."""
         gc = self.config.gpom
-        bs = beam_samples(frame, gc.free_step, gc.stop_before_hit, beam_stride=gc.beam_stride)
+        bs = beam_samples(frame, gc.free_step_m, gc.stop_before_hit, beam_stride=gc.beam_stride)
         H = bs.hit_xy
         X = np.concatenate([H, bs.free_xy])
         y = np.concatenate([np.ones(len(H)), -np.ones(len(X) - len(H))])

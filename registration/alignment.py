@@ -88,7 +88,7 @@ def robust_weights(dist: Array, config: IcpConfig) -> Array:
         else:
             w[np.argpartition(dist, keep - 1)[:keep]] = 1.0
         return w
-    k = config.robust_scale
+    k = config.robust_scale_m
     if config.robust == "huber":
         return np.minimum(1.0, k / np.maximum(dist, 1e-300))
     return 1.0 / (1.0 + (dist / k) ** 2)
@@ -97,15 +97,15 @@ def robust_weights(dist: Array, config: IcpConfig) -> Array:
 def as_target(target: ArrayLike | IcpTarget, config: IcpConfig) -> IcpTarget:
     if isinstance(target, IcpTarget):
         return target
-    return IcpTarget(target, config.target_voxel_size, config.normal_neighbors, config.workers)
+    return IcpTarget(target, config.target_voxel_m, config.normal_neighbors, config.workers)
 
 
 def prepare(source: ArrayLike, tgt: IcpTarget, init: ArrayLike | None, config: IcpConfig) -> tuple[Array, Array]:
     S = np.asarray(source, dtype=np.float64)
     if S.ndim != 2 or S.shape[1] != tgt.dim:
         raise GeometryError(f"source must be (N, {tgt.dim}) like the target, got shape {S.shape}")
-    if config.voxel_size:
-        S = voxel_downsample(S, config.voxel_size)
+    if config.voxel_m:
+        S = voxel_downsample(S, config.voxel_m)
     if len(S) < 3:
         raise DegenerateInputError(f"source has {len(S)} points; ICP needs at least 3")
     T = np.eye(4) if init is None else np.array(init, dtype=np.float64)
@@ -160,7 +160,7 @@ def evaluate_matches(S: Array, tgt: IcpTarget, T: Array, moved: Array, idx: NDAr
         w_res = None if w is None else np.repeat(w, d)
     n_res = e.size
     res = float(e @ e) if w_res is None else float(np.sum(w_res * e * e))
-    verdict = chi2_test(res, n_res, dof, None if config.sigma is None else config.sigma**2,
+    verdict = chi2_test(res, n_res, dof, None if config.sigma_m is None else config.sigma_m**2,
                         config.chi2_factor, config.false_rejection_rate)
     cov, degenerate = covariance_from_information(fisher_information(J, w), verdict.sigma2)
     rmse = math.sqrt(float(np.vdot(diff, diff)) / len(diff))

@@ -21,16 +21,16 @@ class IcpConfig(_Frozen):
     """SVD-ICP (Besl & McKay 1992) and point-to-plane ICP (Chen & Medioni 1992) settings.
 
     Attributes:
-        gates: coarse-to-fine correspondence gates (m): pairs farther apart than the current gate
+        gates_m: coarse-to-fine correspondence gates (m): pairs farther apart than the current gate
             are ignored; each stage runs to convergence before the next, smaller gate.
         max_iterations: iteration cap over all stages.
-        tol_translation: convergence when the pose increment is below this (m) ...
-        tol_rotation: ... and below this (rad).
-        voxel_size: voxel subsampling of the source before matching (m); None = off.
-        target_voxel_size: voxel subsampling of the target (m); None = off.
+        tol_translation_m: convergence when the pose increment is below this (m) ...
+        tol_rotation_rad: ... and below this (rad).
+        voxel_m: voxel subsampling of the source before matching (m); None = off.
+        target_voxel_m: voxel subsampling of the target (m); None = off.
         robust: ``none`` (all gated pairs weight 1), ``trim`` (keep the ``trim_fraction`` closest
-            pairs), ``huber`` or ``cauchy`` (IRLS weights with scale ``robust_scale``).
-        sigma: a-priori residual standard deviation per scalar residual (m); None = estimate it
+            pairs), ``huber`` or ``cauchy`` (IRLS weights with scale ``robust_scale_m``).
+        sigma_m: a-priori residual standard deviation per scalar residual (m); None = estimate it
             from the residual as σ̂² = Res / (n − dof) (then the χ² test cannot reject).
         chi2_factor: reject when Res > chi2_factor · (n − dof) · σ² (the course's rule uses 3).
         false_rejection_rate: if set, the threshold is instead the (1 − α) quantile of
@@ -42,16 +42,16 @@ class IcpConfig(_Frozen):
         workers: cKDTree query threads (-1 = all cores).
     """
 
-    gates: tuple[float, ...] = (1.0, 0.5, 0.25)
+    gates_m: tuple[float, ...] = (1.0, 0.5, 0.25)
     max_iterations: int = 100
-    tol_translation: float = 1e-6
-    tol_rotation: float = 1e-7
-    voxel_size: float | None = None
-    target_voxel_size: float | None = None
+    tol_translation_m: float = 1e-6
+    tol_rotation_rad: float = 1e-7
+    voxel_m: float | None = None
+    target_voxel_m: float | None = None
     robust: Literal["none", "trim", "huber", "cauchy"] = "none"
     trim_fraction: float = Field(0.9, gt=0.0, le=1.0)
-    robust_scale: float = Field(0.1, gt=0.0)
-    sigma: float | None = Field(None, gt=0.0)
+    robust_scale_m: float = Field(0.1, gt=0.0)
+    sigma_m: float | None = Field(None, gt=0.0)
     chi2_factor: float = Field(3.0, gt=0.0)
     false_rejection_rate: float | None = Field(None, gt=0.0, lt=1.0)
     covariance_model: Literal["plane", "point"] = "plane"
@@ -59,7 +59,7 @@ class IcpConfig(_Frozen):
     min_inliers: int = Field(10, ge=3)
     workers: int = -1
 
-    @field_validator("gates")
+    @field_validator("gates_m")
     @classmethod
     def _gates_positive(cls, v: tuple[float, ...]) -> tuple[float, ...]:
         if len(v) == 0 or any(g <= 0 for g in v):
@@ -71,28 +71,27 @@ class KissOdometryConfig(_Frozen):
     """Our settings for KISS-ICP (Vizzo et al., RA-L 2023), mapped onto ``kiss_icp.config.KISSConfig``.
 
     For planar lasers (points with z = 0) deskewing is forced off (CARMEN scans carry no per-beam
-    time and the sweep is short). ``voxel_size`` None means KISS-ICP's own rule ``max_range / 100``.
+    time and the sweep is short). ``voxel_m`` None means KISS-ICP's own rule ``max_range_m / 100``.
     """
 
-    max_range: float = Field(100.0, gt=0.0)
-    min_range: float = Field(0.0, ge=0.0)
+    max_range_m: float = Field(100.0, gt=0.0)
+    min_range_m: float = Field(0.0, ge=0.0)
     deskew: bool = True
-    voxel_size: float | None = Field(None, gt=0.0)
+    voxel_m: float | None = Field(None, gt=0.0)
     max_points_per_voxel: int = Field(20, ge=1)
-    initial_threshold: float = Field(2.0, gt=0.0)
-    min_motion_th: float = Field(0.1, ge=0.0)
-    fixed_threshold: float | None = Field(None, gt=0.0)
+    initial_threshold_m: float = Field(2.0, gt=0.0)
+    min_motion_m: float = Field(0.1, ge=0.0)
+    fixed_threshold_m: float | None = Field(None, gt=0.0)
     max_num_iterations: int = Field(500, ge=1)
     convergence_criterion: float = Field(1e-4, gt=0.0)
     max_num_threads: int = Field(0, ge=0)
-    use_wheel_odometry: bool = True
     compute_covariance: bool = True
-    covariance_sigma: float | None = Field(None, gt=0.0)
+    covariance_sigma_m: float | None = Field(None, gt=0.0)
 
     @model_validator(mode="after")
     def _ranges(self) -> "KissOdometryConfig":
-        if self.min_range >= self.max_range:
-            raise ValueError(f"min_range {self.min_range} must be below max_range {self.max_range}")
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(f"min_range_m {self.min_range_m} must be below max_range_m {self.max_range_m}")
         return self
 
     @classmethod
@@ -102,8 +101,8 @@ class KissOdometryConfig(_Frozen):
         One thread is ~5× faster than TBB's automatic pool for scans of a few hundred beams, and 20 m /
         5 points per voxel keep the local map small (``benchmarks/registration.py``, docs/ODOMETRY.md).
         """
-        return cls(max_range=20.0, min_range=0.1, deskew=False, voxel_size=0.1, max_points_per_voxel=5,
-                   initial_threshold=0.5, min_motion_th=0.02, max_num_threads=1)
+        return cls(max_range_m=20.0, min_range_m=0.1, deskew=False, voxel_m=0.1, max_points_per_voxel=5,
+                   initial_threshold_m=0.5, min_motion_m=0.02, max_num_threads=1)
 
     def to_kiss(self, planar: bool):
         """The equivalent ``kiss_icp.config.KISSConfig`` (deskew off when *planar*)."""
@@ -111,34 +110,33 @@ class KissOdometryConfig(_Frozen):
         from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
 
         return KISSConfig(
-            data=DataConfig(max_range=self.max_range, min_range=self.min_range, deskew=self.deskew and not planar),
-            mapping=MappingConfig(voxel_size=self.voxel_size if self.voxel_size is not None else self.max_range / 100.0,
+            data=DataConfig(max_range=self.max_range_m, min_range=self.min_range_m, deskew=self.deskew and not planar),
+            mapping=MappingConfig(voxel_size=self.voxel_m if self.voxel_m is not None else self.max_range_m / 100.0,
                                   max_points_per_voxel=self.max_points_per_voxel),
             registration=RegistrationConfig(max_num_iterations=self.max_num_iterations,
                                             convergence_criterion=self.convergence_criterion,
                                             max_num_threads=self.max_num_threads),
-            adaptive_threshold=AdaptiveThresholdConfig(fixed_threshold=self.fixed_threshold,
-                                                       initial_threshold=self.initial_threshold,
-                                                       min_motion_th=self.min_motion_th),
+            adaptive_threshold=AdaptiveThresholdConfig(fixed_threshold=self.fixed_threshold_m,
+                                                       initial_threshold=self.initial_threshold_m,
+                                                       min_motion_th=self.min_motion_m),
         )
 
 
 class IcpOdometryConfig(_Frozen):
     """Scan-to-local-map SVD-ICP odometry: the map is the last ``map_scans`` scans in world frame."""
 
-    icp: IcpConfig = IcpConfig(gates=(0.5, 0.2, 0.1), voxel_size=0.05, robust="trim", trim_fraction=0.9)
+    icp: IcpConfig = IcpConfig(gates_m=(0.5, 0.2, 0.1), voxel_m=0.05, robust="trim", trim_fraction=0.9)
     map_scans: int = Field(10, ge=1)
     #: point-to-plane (point-to-line in 2D, Chen & Medioni 1992) instead of point-to-point SVD steps:
     #: no bias towards zero motion where the scan samples the surfaces differently than the map
     point_to_plane: bool = False
-    map_voxel_size: float = Field(0.05, gt=0.0)
-    #: a scan joins the local map when the sensor moved ≥ keyframe_distance (m) or turned ≥ keyframe_angle
-    #: (rad) since the last one that did (0 = every scan); the map's k-d tree is rebuilt only then
-    keyframe_distance: float = Field(0.0, ge=0.0)
-    keyframe_angle: float = Field(0.1, gt=0.0)
-    max_range: float = Field(30.0, gt=0.0)
-    min_range: float = Field(0.0, ge=0.0)
-    use_wheel_odometry: bool = True
+    map_voxel_m: float = Field(0.05, gt=0.0)
+    #: a scan joins the local map when the sensor moved ≥ map_step_m or turned ≥ map_step_rad since the
+    #: last one that did (0 = every scan); the map's k-d tree is rebuilt only then
+    map_step_m: float = Field(0.0, ge=0.0)
+    map_step_rad: float = Field(0.1, gt=0.0)
+    max_range_m: float = Field(30.0, gt=0.0)
+    min_range_m: float = Field(0.0, ge=0.0)
     #: with wheel odometry as the guess: an ICP increment further than this from it (m, rad) is a
     #: registration failure (e.g. a wrong basin in a featureless stretch) and the guess is kept instead
     max_guess_deviation_m: float | None = Field(None, gt=0.0)
@@ -155,8 +153,8 @@ class IcpOdometryConfig(_Frozen):
     #: ICP step (registration.point_to_plane.PosePrior), with σ = prior_sigma_m + prior_sigma_per_m · d
     #: per axis of translation and prior_sigma_rad + prior_sigma_rad_per_m · d + prior_sigma_rad_per_rad · |Δθ|
     #: of rotation for a wheel step of d metres and Δθ radians, against point residuals of
-    #: prior_point_sigma (m); None = no prior. Holds the pose along a featureless corridor.
-    prior_point_sigma: float | None = Field(None, gt=0.0)
+    #: prior_point_sigma_m; None = no prior. Holds the pose along a featureless corridor.
+    prior_point_sigma_m: float | None = Field(None, gt=0.0)
     prior_sigma_m: float = Field(0.01, gt=0.0)
     prior_sigma_per_m: float = Field(0.1, ge=0.0)
     prior_sigma_rad: float = Field(0.005, gt=0.0)

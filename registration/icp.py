@@ -99,7 +99,7 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     # The matches are searched again only where the motion since the last search could change them.
     matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=n >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
-    tol_t, tol_r = config.tol_translation, config.tol_rotation
+    tol_t, tol_r = config.tol_translation_m, config.tol_rotation_rad
     # Unweighted, the closed-form step from the same correspondences returns the same pose: matches
     # that repeat those the current pose was solved from are the fixed point (the increment would be
     # exactly 0), and they are also the final evaluation's.
@@ -112,7 +112,7 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     moved = None  # the source moved by the current pose, when already computed
     it = 0
     converged = False
-    for gate in config.gates:
+    for gate in config.gates_m:
         converged = False
         while it < config.max_iterations:
             it += 1
@@ -149,7 +149,7 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     T[:d, :d], T[:d, 3] = R, t
     if moved is None:
         moved = S @ R.T + t
-    gate = config.gates[-1]
+    gate = config.gates_m[-1]
     return evaluate_matches(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
 
 
@@ -159,18 +159,18 @@ def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
     from . import kernels_icp
 
     g = tgt.grid
-    repeat_is_fixed_point = config.robust == "none" and config.tol_translation > 0 and config.tol_rotation > 0
+    repeat_is_fixed_point = config.robust == "none" and config.tol_translation_m > 0 and config.tol_rotation_rad > 0
     R, t, it, converged, status, stage, matches, pairs = kernels_icp.point_icp_2d(
-        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
-        config.max_iterations, config.tol_translation, config.tol_rotation, alignment.ROBUST_CODES[config.robust],
-        config.robust_scale, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
+        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
+        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
+        config.robust_scale_m, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
     if status == 1:
-        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates[stage]} m "
+        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates_m[stage]} m "
                                    f"(need {config.min_inliers})")
     if status == 3:
         raise DegenerateInputError("all correspondence weights are zero")
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, t
     matches[matches < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
-    gate = config.gates[-1]
+    gate = config.gates_m[-1]
     return evaluate_matches(S, tgt, T, S @ R.T + t, matches, gate, config, it, converged)

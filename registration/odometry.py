@@ -7,7 +7,8 @@ project tangent convention (``prev_T_curr_true = prev_T_curr · Exp(δ)``, trans
 for planar scans, 6×6 for 3D). The covariance treats the map (or the previous scan) as fixed, so
 it is the covariance of the pose increment.
 
-When a frame carries wheel odometry (``Frame.odom``) and ``use_wheel_odometry`` is on, the
+When a frame carries wheel odometry (``Frame.odom``) and the odometry was built with
+``use_wheel_odometry`` (the default), the
 predicted increment ``base_T_sensor⁻¹ · odom_prev⁻¹ · odom_curr · base_T_sensor`` is the initial
 guess; otherwise a constant-velocity guess (the last increment) is used.
 
@@ -91,7 +92,9 @@ def _crop(points: Array, min_range: float, max_range: float) -> Array:
 class Odometry(abc.ABC):
     """Common interface: ``update(frame) → OdometryStep``; ``run(frames)`` for a whole log."""
 
-    def __init__(self) -> None:
+    def __init__(self, use_wheel_odometry: bool = True) -> None:
+        #: whether a frame's wheel odometry (``Frame.odom``) predicts its pose: the robot's sensors, not a tuning
+        self.use_wheel_odometry = use_wheel_odometry
         self._prev_frame: Frame | None = None
         self._pose = np.eye(4)
         self._last_delta = np.eye(4)
@@ -141,8 +144,8 @@ class Odometry(abc.ABC):
 class KissOdometry(Odometry):
     """KISS-ICP odometry for 3D clouds and planar scans (z = 0), config mapped from ours."""
 
-    def __init__(self, config: KissOdometryConfig | None = None) -> None:
-        super().__init__()
+    def __init__(self, config: KissOdometryConfig | None = None, use_wheel_odometry: bool = True) -> None:
+        super().__init__(use_wheel_odometry)
         self.config = config or KissOdometryConfig()
         self._kiss = None
         self._planar: bool | None = None
@@ -164,7 +167,7 @@ class KissOdometry(Odometry):
         kiss = self._kiss
         if self._prev_frame is not None:
             # KISS-ICP predicts last_pose · last_delta; seeding last_delta injects our guess.
-            kiss.last_delta = self._guess(frame, self.config.use_wheel_odometry)
+            kiss.last_delta = self._guess(frame, self.use_wheel_odometry)
         sigma = float(kiss.adaptive_threshold.get_threshold())
         pts3 = frame.points_3d()
         _, source = kiss.register_frame(pts3, np.zeros(0))
@@ -177,12 +180,12 @@ class KissOdometry(Odometry):
         if cfg.compute_covariance:
             src = np.asarray(source, dtype=np.float64)[:, :d]
             if self._prev_world is not None and len(src) >= 3:
-                icfg = IcpConfig(gates=(3.0 * sigma,), sigma=cfg.covariance_sigma, covariance_model="plane",
+                icfg = IcpConfig(gates_m=(3.0 * sigma,), sigma_m=cfg.covariance_sigma_m, covariance_model="plane",
                                  workers=1 if d == 2 else -1)
                 try:
                     tgt = IcpTarget(self._prev_world, workers=icfg.workers)
-                    res = evaluate_alignment(src, tgt, pose, icfg.gates[0], icfg)
-                    cov, accepted = res.covariance, res.accepted if cfg.covariance_sigma else None
+                    res = evaluate_alignment(src, tgt, pose, icfg.gates_m[0], icfg)
+                    cov, accepted = res.covariance, res.accepted if cfg.covariance_sigma_m else None
                 except DegenerateInputError:
                     cov = None
             vs = kiss.config.mapping.voxel_size * 0.5
@@ -194,8 +197,7 @@ class IcpOdometry(Odometry):
     """SVD-ICP scan-to-local-map odometry; the map is the last ``map_scans`` scans (world frame)."""
 
     def _wheel_guided(self, frame: Frame) -> bool:
-        c = self.config
-        return (c.use_wheel_odometry and self._prev_frame is not None and frame.odom is not None
+        return (self.use_wheel_odometry and self._prev_frame is not None and frame.odom is not None
                 and self._prev_frame.odom is not None)
 
     def _too_far(self, guess: Array, pose: Array) -> bool:
@@ -206,8 +208,8 @@ class IcpOdometry(Odometry):
                     or (c.max_guess_deviation_rad is not None
                         and geo.rotation_angle(d[:3, :3]) > c.max_guess_deviation_rad))
 
-    def __init__(self, config: IcpOdometryConfig | None = None) -> None:
-        super().__init__()
+    def __init__(self, config: IcpOdometryConfig | None = None, use_wheel_odometry: bool = True) -> None:
+        super().__init__(use_wheel_odometry)
         self.config = config or IcpOdometryConfig()
         self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
         self._map_pose: Array | None = None
@@ -312,23 +314,23 @@ class IcpOdometry(Odometry):
     def _prior(self, pose: Array, increment: Array, dim: int) -> PosePrior | None:
         """The wheel prediction *pose* (world_T_sensor) as a prior, its σ from the *increment*'s length and turn."""
         c = self.config
-        if c.prior_point_sigma is None or not c.point_to_plane:
+        if c.prior_point_sigma_m is None or not c.point_to_plane:
             return None
         d = float(np.linalg.norm(increment[:3, 3]))
         turn = geo.rotation_angle(increment[:3, :3])
         s_t = c.prior_sigma_m + c.prior_sigma_per_m * d
         s_r = c.prior_sigma_rad + c.prior_sigma_rad_per_m * d + c.prior_sigma_rad_per_rad * turn
         n_r = 1 if dim == 2 else 3
-        return PosePrior(pose, np.diag([(c.prior_point_sigma / s_t) ** 2] * dim + [(c.prior_point_sigma / s_r) ** 2] * n_r))
+        return PosePrior(pose, np.diag([(c.prior_point_sigma_m / s_t) ** 2] * dim + [(c.prior_point_sigma_m / s_r) ** 2] * n_r))
 
     def update(self, frame: Frame) -> OdometryStep:
         cfg = self.config
-        pts = _crop(frame.points, cfg.min_range, cfg.max_range)
+        pts = _crop(frame.points, cfg.min_range_m, cfg.max_range_m)
         if self._prev_frame is None:
-            self._map.append(voxel_downsample(pts, cfg.map_voxel_size))
+            self._map.append(voxel_downsample(pts, cfg.map_voxel_m))
             self._map_pose = np.eye(4)
             return self._emit(frame, np.eye(4), None, None)
-        prediction = self._guess(frame, cfg.use_wheel_odometry)
+        prediction = self._guess(frame, self.use_wheel_odometry)
         guess = self._pose @ prediction
         if self._target is None:
             self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
@@ -350,7 +352,7 @@ class IcpOdometry(Odometry):
         if res is None:
             pose = guess  # too few pairs (e.g. an empty scan): dead-reckon on the guess
         else:
-            pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma else None
+            pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma_m else None
         if frame.is_planar:
             pose = _planar(pose)
         if guided and res is not None and self._too_far(guess, pose):
@@ -359,9 +361,9 @@ class IcpOdometry(Odometry):
             pose, cov, accepted = guess, None, False
         moved = geo.relative(self._map_pose, pose)
         turned = geo.rotation_angle(moved[:3, :3])
-        if (cfg.keyframe_distance == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.keyframe_distance
-                or turned >= cfg.keyframe_angle):
-            self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_size)))
+        if (cfg.map_step_m == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.map_step_m
+                or turned >= cfg.map_step_rad):
+            self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_m)))
             self._map_pose = pose
             self._target = None
             self._pyramid = None

@@ -64,7 +64,7 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     converged = False
     R, t = T[:d, :d].copy(), T[:d, 3].copy()
     moved = None  # the source moved by the current pose, when already computed
-    for gate in config.gates:
+    for gate in config.gates_m:
         converged = False
         while it < config.max_iterations:
             it += 1
@@ -98,14 +98,14 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
                 E = se3_exp(xi)
                 R, t = E[:3, :3] @ R, E[:3, :3] @ t + E[:3, 3]
             moved = None
-            if np.linalg.norm(xi[: d]) < config.tol_translation and np.linalg.norm(xi[d:]) < config.tol_rotation:
+            if np.linalg.norm(xi[: d]) < config.tol_translation_m and np.linalg.norm(xi[d:]) < config.tol_rotation_rad:
                 converged = True
                 break
     T = np.eye(4)
     T[:d, :d], T[:d, 3] = R, t
     if moved is None:
         moved = S @ R.T + t
-    gate = config.gates[-1]
+    gate = config.gates_m[-1]
     return evaluate_matches(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
 
 
@@ -115,19 +115,19 @@ def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
 
     g = tgt.grid
     R, t, it, converged, status, stage, pairs = kernels_icp.plane_icp_2d(
-        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates, dtype=np.float64),
-        config.max_iterations, config.tol_translation, config.tol_rotation, alignment.ROBUST_CODES[config.robust],
-        config.robust_scale, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
+        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
+        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
+        config.robust_scale_m, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
         g.points, *g.args())
     if status == 1:
         raise DegenerateInputError(f"point-to-plane ICP iteration {it}: {pairs} pairs within "
-                                   f"{config.gates[stage]} m (need {config.min_inliers})")
+                                   f"{config.gates_m[stage]} m (need {config.min_inliers})")
     if status == 2:
         raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations")
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, t
     moved = S @ R.T + t
-    gate = config.gates[-1]
+    gate = config.gates_m[-1]
     return evaluate_matches(S, tgt, T, moved, gated_nearest(tgt, moved, gate), gate, config, it, converged)
 
 

@@ -66,12 +66,12 @@ class IcpTarget:
     """A target point set prepared once for many alignments: subsampled points, kd-tree and
     (lazily) PCA normals. Points ``(N, d)`` in the target frame, metres."""
 
-    def __init__(self, points: ArrayLike, voxel_size: float | None = None, normal_neighbors: int = 10,
+    def __init__(self, points: ArrayLike, voxel_m: float | None = None, normal_neighbors: int = 10,
                  workers: int = -1) -> None:
         P = np.asarray(points, dtype=np.float64)
         if P.ndim != 2 or P.shape[1] not in (2, 3):
             raise GeometryError(f"target points must be (N, 2) or (N, 3), got shape {P.shape}")
-        self.points = voxel_downsample(P, voxel_size, mode="centroid") if voxel_size else P
+        self.points = voxel_downsample(P, voxel_m, mode="centroid") if voxel_m else P
         if len(self.points) < 3:
             raise DegenerateInputError(f"target has {len(self.points)} points; ICP needs at least 3")
         self.dim = self.points.shape[1]

@@ -60,6 +60,8 @@ class KeyframeConfig(BaseModel):
     distance_m: float = Field(0.25, gt=0, description="translation since the last keyframe, metres")
     angle_rad: float = Field(0.25, gt=0, description="rotation since the last keyframe, radians")
     time_s: float = Field(10.0, gt=0, description="time since the last keyframe, seconds")
+    max_range_m: float = Field(30.0, gt=0, description="a keyframe keeps the points of its scan within this range of the sensor (for its edge covariance, loop closure and the self-check)")
+    min_range_m: float = Field(0.05, ge=0, description="... and beyond this one")
 
 
 @dataclass

@@ -32,8 +32,8 @@ from tests.test_logs_skip import rewrite_mcap
 
 pytestmark = pytest.mark.xdist_group("batch")
 
-SWEEP = "odometry.icp_tolerance=0.0005:0.001:2"  # a dotted name: any numeric config value
-SETTINGS = ("odometry.icp_tolerance=0.0005", "odometry.icp_tolerance=0.001")
+SWEEP = "odometry.icp_2d.icp.tol_translation_m=0.0005:0.001:2"  # a dotted name: any numeric config value
+SETTINGS = ("odometry.icp_2d.icp.tol_translation_m=0.0005", "odometry.icp_2d.icp.tol_translation_m=0.001")
 
 
 def _slam(args, capsys):
@@ -131,13 +131,13 @@ def sequential(logs, tmp_path_factory):
     out = {}
     for value in (0.0005, 0.001):
         cfg = d / f"cfg{value}.yaml"
-        cfg.write_text(f"mapping:\n  enabled: false\nodometry:\n  icp_tolerance: {value}\n")
+        cfg.write_text(f"mapping:\n  enabled: false\nodometry:\n  icp_2d:\n    icp:\n      tol_translation_m: {value}\n")
         for log in good:
             run = d / f"{log.stem}_{value}"
             with pytest.raises(SystemExit) as ei:
                 main(["run", str(log), "--config", str(cfg), "--out", str(run), "--eval", "--quiet"])
             assert ei.value.code in (0, None)
-            out[(log.stem, f"odometry.icp_tolerance={value}")] = run
+            out[(log.stem, f"odometry.icp_2d.icp.tol_translation_m={value}")] = run
     return out
 
 
@@ -218,7 +218,7 @@ def test_results_csv_json_md_and_report_agree(batch):
     with open(out / "results.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == doc["columns"] and len(rows) == len(doc["rows"]) == 8
-    assert doc["columns"][:3] == ["log", "setting", "odometry.icp_tolerance"]
+    assert doc["columns"][:3] == ["log", "setting", "odometry.icp_2d.icp.tol_translation_m"]
     for c_row, j_row in zip(rows, doc["rows"]):
         for k in doc["columns"]:
             v = j_row[k]
@@ -236,7 +236,7 @@ def test_results_csv_json_md_and_report_agree(batch):
     closed = any(r["loop_precision"] is not None for r in doc["rows"])
     assert html.count("data:image/png;base64,") == (4 if closed else 2)
     assert ("Loop-closure precision per log" in html) == closed
-    assert "Relation error per log" in html and "against odometry.icp_tolerance" in html
+    assert "Relation error per log" in html and "against odometry.icp_2d.icp.tol_translation_m" in html
 
 
 def test_resume_reruns_nothing_and_a_changed_config_reruns_its_runs(batch, logs, tmp_path, capsys):
@@ -252,7 +252,7 @@ def test_resume_reruns_nothing_and_a_changed_config_reruns_its_runs(batch, logs,
     assert doc["tasks_run"] == 0 and doc["resumed"] == 6 and all(r["resumed"] for r in doc["rows"])
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/batch.json")} == before
     # tour2 gets its own config value: its two runs have another config hash
-    lines = spec.read_text().replace(f"  - {good[2]}", f"  - log: {good[2]}\n    config: {{odometry.icp_tolerance: 4.0e-4}}")
+    lines = spec.read_text().replace(f"  - {good[2]}", f"  - log: {good[2]}\n    config: {{odometry.icp_2d.icp.tol_translation_m: 4.0e-4}}")
     spec.write_text(lines)
     code, _, err = _slam(["batch", spec, "--out", out, "--quiet"], capsys)
     assert code == 0, err
@@ -270,7 +270,7 @@ def test_two_cpus_per_run_keep_the_stage_processes(ray_cluster, logs, batch, tmp
     out1, _, _ = batch
     good, _ = logs
     out = tmp_path / "two"
-    code, _, err = _slam(["batch", good[0], "--sweep", "odometry.icp_tolerance=0.0005:0.0005:1", "--config",
+    code, _, err = _slam(["batch", good[0], "--sweep", "odometry.icp_2d.icp.tol_translation_m=0.0005:0.0005:1", "--config",
                           _mapping_off(tmp_path), "--out", out, "--cpus-per-run", "2", "--quiet"], capsys)
     assert code == 0, err
     run = out / "runs" / "tour0" / SETTINGS[0]

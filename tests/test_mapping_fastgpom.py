@@ -226,7 +226,7 @@ def test_a_fit_that_calls_hits_free_gives_way_to_the_configured_values():
         gaussian_grid.fit_hyperparameters = lambda *a, **k: smooth
         with pytest.warns(UserWarning, match="worse than the configured values"):
             got = initial_hyperparameters(cfg, X, y, beams)
-        assert (got.length_scale, got.sigma_f, got.sigma_n) == (cfg.length_scale, cfg.sigma_f, cfg.sigma_n)
+        assert (got.length_scale, got.sigma_f, got.sigma_n) == (cfg.length_scale_m, cfg.sigma_f, cfg.sigma_n)
         sharp = GPHyperparameters(3.5, 0.1, 1.2, 0.01)
         gaussian_grid.fit_hyperparameters = lambda *a, **k: sharp
         with warnings.catch_warnings():

@@ -80,3 +80,53 @@ def test_print_config_reads_back_and_carries_the_options(tmp_path):
     cfg = SlamConfig.from_yaml(tmp_path / "c.yaml")
     assert cfg.mapping.params.method == "logodds" and cfg.backend.kind == "chordal"
     assert cfg.model_copy(update={"mapping": SlamConfig().mapping, "backend": SlamConfig().backend}) == SlamConfig()
+
+
+@pytest.mark.parametrize("section", ["icp_2d", "icp_3d", "kiss_2d", "kiss_3d"])
+def test_a_partial_registration_section_changes_only_what_it_names(section):
+    """The registration settings nested under ``odometry`` default to the pipeline's values, which differ
+    from the registration models' own: a section that names one field keeps every other pipeline default
+    (``icp_2d: {icp: {gates_m: [0.5]}}`` must not reset the planar map voxel or the correlative window)."""
+    default = getattr(SlamConfig().odometry, section)
+    nested = "icp" in type(default).model_fields
+    given = {"icp": {"max_iterations": 7}} if nested else {"max_num_iterations": 7}
+    got = getattr(SlamConfig.model_validate({"odometry": {section: given}}).odometry, section)
+    changed = {k for k in type(default).model_fields if getattr(got, k) != getattr(default, k)}
+    assert changed == ({"icp"} if nested else {"max_num_iterations"})
+    if nested:
+        assert got.icp.max_iterations == 7
+        assert got.icp.model_copy(update={"max_iterations": default.icp.max_iterations}) == default.icp
+    assert default != type(default)()  # the pipeline's defaults are not the model's own: the case that matters
+
+
+# Float settings that are ratios, probabilities, counts of σ or model constants: no unit to name.
+DIMENSIONLESS = {
+    "trim_fraction", "chi2_factor", "false_rejection_rate", "alternative_start_min_gain", "unguided_escalation",
+    "convergence_criterion", "edge_ambiguity_ratio", "wheel_gate_probability", "window_sigmas",
+    "descriptor_max_distance", "min_relative_score", "min_relative_fitness", "max_relative_rmse",
+    "max_free_space_violation", "consistency_probability", "ambiguity_ratio", "relocalise_sigmas", "robust_scale",
+    "isam2_relinearize_threshold", "lone_odometry_kernel_sigmas", "squash_alpha", "squash_beta",
+    "occupied_thresh", "free_thresh", "nu", "sigma_f", "sigma_n", "stop_before_hit", "region_a_mean",
+    "region_a_variance", "l_occ", "l_free", "l_min", "l_max",
+}
+UNIT_SUFFIXES = ("_m", "_rad", "_s", "_deg", "_m_per_rad", "_per_m", "_per_rad")
+
+
+def test_every_physical_setting_names_its_unit():
+    """Every float (or tuple of floats) in the tree ends in its unit, unless it is a known dimensionless
+    quantity; a new physical setting without a suffix fails here."""
+    from pydantic import BaseModel
+
+    def floats(model, prefix=""):  # type: ignore[no-untyped-def]
+        for name, field in type(model).model_fields.items():
+            value = getattr(model, name)
+            if isinstance(value, BaseModel):
+                yield from floats(value, f"{prefix}{name}.")
+            elif "float" in str(field.annotation):
+                yield prefix + name, name
+
+    found = list(floats(SlamConfig()))
+    assert len(found) > 80
+    bare = [path for path, name in found if not name.endswith(UNIT_SUFFIXES) and name not in DIMENSIONLESS]
+    assert bare == []
+    assert not DIMENSIONLESS - {name for _, name in found}  # the list names no setting that no longer exists

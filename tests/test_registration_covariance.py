@@ -50,7 +50,7 @@ def test_point_model_nees_is_consistent(dim):
     Gaussian noise σ/√2 (residual σ per coordinate), random truth. The mean NEES of the ICP
     estimate against its covariance σ²(JᵀJ)⁻¹ lies in [0.8, 1.2]·dof (issue 3 acceptance)."""
     rng = np.random.default_rng(10 + dim)
-    cfg = IcpConfig(gates=(0.5,), covariance_model="point", sigma=SIGMA, tol_translation=1e-10, tol_rotation=1e-10)
+    cfg = IcpConfig(gates_m=(0.5,), covariance_model="point", sigma_m=SIGMA, tol_translation_m=1e-10, tol_rotation_rad=1e-10)
     vals = []
     for _ in range(200):
         if dim == 2:
@@ -72,7 +72,7 @@ def test_plane_model_nees_is_consistent_2d():
     normal component of the noise is informative; the mean NEES is within [0.8, 1.2]·3."""
     rng = np.random.default_rng(21)
     tgt = IcpTarget(dense_segments(ROOM, 0.002))
-    cfg = IcpConfig(gates=(0.3, 0.1), covariance_model="plane", sigma=SIGMA, tol_translation=1e-9, tol_rotation=1e-9)
+    cfg = IcpConfig(gates_m=(0.3, 0.1), covariance_model="plane", sigma_m=SIGMA, tol_translation_m=1e-9, tol_rotation_rad=1e-9)
     vals = []
     for _ in range(200):
         T = geo.se2_exp(rng.normal(size=3) * [0.05, 0.05, 0.02])
@@ -90,7 +90,7 @@ def test_corridor_covariance_is_largest_along_the_corridor():
     tgt = IcpTarget(dense_segments(walls, 0.01))
     pts = sample_segments(walls * [0.5, 1, 0.5, 1], 300, rng) + rng.normal(scale=SIGMA, size=(300, 2))
     T = geo.xytheta_to_matrix(0.03, 0.02, 0.01)
-    r = icp(geo.transform_points(geo.inverse(T), pts), tgt, None, IcpConfig(gates=(0.3,), sigma=SIGMA))
+    r = icp(geo.transform_points(geo.inverse(T), pts), tgt, None, IcpConfig(gates_m=(0.3,), sigma_m=SIGMA))
     ev, V = np.linalg.eigh(r.covariance[:2, :2])
     assert abs(V[0, -1]) > 0.99  # principal axis ≈ x
     assert ev[-1] > 100 * ev[0]
@@ -117,7 +117,7 @@ def test_corridor_from_simulated_scan():
         ok = np.isfinite(r)
         return np.column_stack([r[ok] * np.cos(ang[ok]), r[ok] * np.sin(ang[ok])])
 
-    res = icp(pts(R[1]), pts(R[0]), np.eye(4), IcpConfig(gates=(0.5, 0.2)))
+    res = icp(pts(R[1]), pts(R[0]), np.eye(4), IcpConfig(gates_m=(0.5, 0.2)))
     ev, V = np.linalg.eigh(res.covariance[:2, :2])
     assert abs(V[0, -1]) > np.cos(np.radians(20))
 
@@ -151,7 +151,7 @@ def test_chi2_false_rejection_rate_matches_configuration():
     model) are rejected at a measured rate within the 99.9 % binomial band of α."""
     rng = np.random.default_rng(33)
     tgt = IcpTarget(dense_segments(ROOM, 0.002))
-    cfg = IcpConfig(gates=(0.3, 0.1), sigma=SIGMA, false_rejection_rate=0.05)
+    cfg = IcpConfig(gates_m=(0.3, 0.1), sigma_m=SIGMA, false_rejection_rate=0.05)
     rejected = 0
     n = 300
     for _ in range(n):
@@ -173,7 +173,7 @@ def test_chi2_rejects_wrong_basin_in_symmetric_room():
     pts = sample_segments(room, 400, rng) + rng.normal(scale=SIGMA, size=(400, 2))
     T = geo.xytheta_to_matrix(0.1, -0.05, 0.05)
     src = geo.transform_points(geo.inverse(T), pts)
-    cfg = IcpConfig(gates=(0.5, 0.2), sigma=SIGMA, min_inliers=10)
+    cfg = IcpConfig(gates_m=(0.5, 0.2), sigma_m=SIGMA, min_inliers=10)
     good = icp(src, tgt, np.eye(4), cfg)
     assert good.accepted and np.abs(good.transform - T).max() < 0.01
     bad = icp(src, tgt, geo.xytheta_to_matrix(0.0, 0.0, np.pi / 2), cfg)

@@ -35,7 +35,7 @@ def test_icp_recovers_noise_free_3d_transform():
     rng = np.random.default_rng(0)
     P = rng.uniform(-5, 5, size=(2000, 3))
     T = geo.se3_exp([0.2, -0.1, 0.05, 0.02, -0.03, 0.08])
-    r = icp(geo.transform_points(geo.inverse(T), P), P, None, IcpConfig(gates=(1.0, 0.5), tol_translation=1e-12, tol_rotation=1e-12))
+    r = icp(geo.transform_points(geo.inverse(T), P), P, None, IcpConfig(gates_m=(1.0, 0.5), tol_translation_m=1e-12, tol_rotation_rad=1e-12))
     assert np.abs(r.transform - T).max() < 1e-9
     assert r.rmse < 1e-9 and r.fitness == 1.0 and r.converged
 
@@ -47,7 +47,7 @@ def test_icp_2d_returns_planar_pose_and_uses_initial_guess():
     P = rng.uniform(-10, 10, size=(500, 2))
     T = geo.xytheta_to_matrix(2.0, -1.0, np.radians(60))
     src = geo.transform_points(geo.inverse(T), P)
-    r = icp(src, P, T @ geo.xytheta_to_matrix(0.05, 0.05, 0.02), IcpConfig(gates=(0.5, 0.2)))
+    r = icp(src, P, T @ geo.xytheta_to_matrix(0.05, 0.05, 0.02), IcpConfig(gates_m=(0.5, 0.2)))
     assert np.abs(r.transform - T).max() < 1e-9
     assert r.transform[2, 3] == 0 and np.allclose(r.transform[2, :3], [0, 0, 1])
 
@@ -62,7 +62,7 @@ def test_robust_weights_reject_outliers(robust):
     src = geo.transform_points(geo.inverse(T), P)
     out = rng.choice(1000, 200, replace=False)
     src[out] += rng.uniform(-0.4, 0.4, size=(200, 2))
-    base = IcpConfig(gates=(0.5, 0.3), robust_scale=0.02, trim_fraction=0.75, max_iterations=200)
+    base = IcpConfig(gates_m=(0.5, 0.3), robust_scale_m=0.02, trim_fraction=0.75, max_iterations=200)
     good = icp(src, P, None, base.model_copy(update={"robust": robust}))
     assert np.linalg.norm(good.transform[:2, 3] - T[:2, 3]) < 1e-3
     plain = icp(src, P, None, base)
@@ -75,7 +75,7 @@ def test_point_to_plane_recovers_box_motion():
     P = _box(0.1)
     T = geo.se3_exp([0.1, -0.05, 0.03, 0.01, -0.02, 0.03])
     src = geo.transform_points(geo.inverse(T), P)[::3]
-    r = icp_point_to_plane(src, P, None, IcpConfig(gates=(0.5, 0.2), tol_translation=1e-10, tol_rotation=1e-10))
+    r = icp_point_to_plane(src, P, None, IcpConfig(gates_m=(0.5, 0.2), tol_translation_m=1e-10, tol_rotation_rad=1e-10))
     E = geo.se3_log(geo.relative(T, r.transform))
     assert np.abs(E).max() < 1e-6
     assert r.iterations < 20
@@ -128,7 +128,7 @@ def test_too_few_pairs_within_gate_raises():
     """Clouds farther apart than the gate give a DegenerateInputError naming the gate."""
     P = np.random.default_rng(5).uniform(0, 1, size=(100, 3))
     with pytest.raises(DegenerateInputError, match="within"):
-        icp(P + 10.0, P, None, IcpConfig(gates=(0.5,)))
+        icp(P + 10.0, P, None, IcpConfig(gates_m=(0.5,)))
 
 
 def test_matches_open3d_fixed_point_on_real_intel_scans():
@@ -145,7 +145,7 @@ def test_matches_open3d_fixed_point_on_real_intel_scans():
             break
     for a, b in zip(frames[:-1], frames[1:]):
         init = geo.relative(a.odom, b.odom)
-        ours = icp(b.points, a.points, init, IcpConfig(gates=(0.5,), max_iterations=300, tol_translation=1e-10, tol_rotation=1e-10))
+        ours = icp(b.points, a.points, init, IcpConfig(gates_m=(0.5,), max_iterations=300, tol_translation_m=1e-10, tol_rotation_rad=1e-10))
         pc = []
         for P in (b.points, a.points):
             c = o3d.geometry.PointCloud()
@@ -168,8 +168,8 @@ def test_point_to_plane_on_real_kitti_pair_moves_forward():
     seq = shared_path("kitti_odometry_00_sample", "sequences", "00")
     it = open_log(seq).frames()
     f0, f1 = next(it), next(it)
-    tgt = IcpTarget(f0.points, voxel_size=0.5, normal_neighbors=10)
-    r = icp_point_to_plane(voxel_downsample(f1.points, 0.5), tgt, None, IcpConfig(gates=(1.0, 0.5), max_iterations=60))
+    tgt = IcpTarget(f0.points, voxel_m=0.5, normal_neighbors=10)
+    r = icp_point_to_plane(voxel_downsample(f1.points, 0.5), tgt, None, IcpConfig(gates_m=(1.0, 0.5), max_iterations=60))
     assert 0.6 < r.transform[0, 3] < 0.9
     assert np.degrees(np.linalg.norm(geo.so3_log(r.transform[:3, :3]))) < 0.5
     assert np.all(np.linalg.eigvalsh(r.covariance) > 0)
@@ -184,7 +184,7 @@ def _room_2d(step: float = 0.05) -> np.ndarray:
     return np.vstack(walls + [np.column_stack([1.0 + 0.4 * np.cos(a), 0.5 + 0.4 * np.sin(a)])])
 
 
-_EXACT = IcpConfig(gates=(0.5, 0.2), tol_translation=1e-12, tol_rotation=1e-12, max_iterations=100)
+_EXACT = IcpConfig(gates_m=(0.5, 0.2), tol_translation_m=1e-12, tol_rotation_rad=1e-12, max_iterations=100)
 
 
 def test_prior_of_zero_information_changes_nothing_and_a_stiff_prior_wins(monkeypatch):

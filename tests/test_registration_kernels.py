@@ -110,10 +110,10 @@ def test_compiled_2d_icp_equals_the_numpy_loop(monkeypatch, robust, seed, loop, 
 
     P, src, T = _noisy_scan(seed)
     if loop == "plane":
-        align, fit = icp_point_to_plane, dict(max_iterations=40, tol_translation=1e-6, tol_rotation=1e-6, normal_neighbors=8)
+        align, fit = icp_point_to_plane, dict(max_iterations=40, tol_translation_m=1e-6, tol_rotation_rad=1e-6, normal_neighbors=8)
     else:
-        align, fit = icp, dict(max_iterations=300, tol_translation=1e-10, tol_rotation=1e-10)
-    cfg = IcpConfig(gates=gates, robust=robust, robust_scale=0.06, sigma=0.03, workers=1, **fit)
+        align, fit = icp, dict(max_iterations=300, tol_translation_m=1e-10, tol_rotation_rad=1e-10)
+    cfg = IcpConfig(gates_m=gates, robust=robust, robust_scale_m=0.06, sigma_m=0.03, workers=1, **fit)
     fast = align(src, P, None, cfg)
     monkeypatch.setattr(alignment, "COMPILED_2D", False)
     ref = align(src, P, None, cfg)
@@ -131,7 +131,7 @@ def test_both_2d_point_to_point_loops_refuse_too_few_pairs(monkeypatch, compiled
     monkeypatch.setattr(alignment, "COMPILED_2D", compiled)
     P = _room()
     with pytest.raises(DegenerateInputError, match=r"ICP iteration 1: 0 pairs within 1.0 m \(need 10\)"):
-        icp(P + 50.0, P, None, IcpConfig(gates=(1.0, 0.5)))
+        icp(P + 50.0, P, None, IcpConfig(gates_m=(1.0, 0.5)))
 
 
 @pytest.mark.parametrize("compiled", [True, False])
@@ -140,10 +140,10 @@ def test_both_2d_loops_refuse_too_few_pairs_and_a_singular_system(monkeypatch, c
     P = _room()
     far = P + 50.0
     with pytest.raises(DegenerateInputError, match=r"iteration 1: 0 pairs within 1.0 m \(need 10\)"):
-        icp_point_to_plane(far, P, None, IcpConfig(gates=(1.0, 0.5)))
+        icp_point_to_plane(far, P, None, IcpConfig(gates_m=(1.0, 0.5)))
     line = np.column_stack([np.linspace(0, 5, 100), np.zeros(100)])  # slides along x: no x information
     with pytest.raises(DegenerateInputError, match="singular normal equations"):
-        icp_point_to_plane(line, line, None, IcpConfig(gates=(0.5,)))
+        icp_point_to_plane(line, line, None, IcpConfig(gates_m=(0.5,)))
 
 
 def test_compiled_correlative_scores_equal_their_definition():

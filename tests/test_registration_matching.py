@@ -87,7 +87,7 @@ def test_icp_is_the_same_with_and_without_incremental_matching(monkeypatch, robu
     P = rng.uniform(-5, 5, size=(1200, 3))
     T = geo.se3_exp([0.15, -0.1, 0.05, 0.02, -0.03, 0.05])
     src = geo.transform_points(geo.inverse(T), P[:900]) + rng.normal(scale=0.01, size=(900, 3))
-    cfg = IcpConfig(gates=(1.0, 0.5, 0.2), robust=robust, tol_translation=1e-10, tol_rotation=1e-10, max_iterations=200)
+    cfg = IcpConfig(gates_m=(1.0, 0.5, 0.2), robust=robust, tol_translation_m=1e-10, tol_rotation_rad=1e-10, max_iterations=200)
     out = []
     for threshold in (0, 10**9):
         monkeypatch.setattr(icp_module, "INCREMENTAL_MIN_POINTS", threshold)
@@ -113,7 +113,7 @@ def test_point_to_plane_is_the_same_with_and_without_incremental_matching(monkey
     P = np.vstack(faces)
     T = geo.se3_exp([0.1, -0.05, 0.04, 0.02, -0.01, 0.03])
     src = geo.transform_points(geo.inverse(T), P[::2]) + rng.normal(scale=0.005, size=(len(P[::2]), 3))
-    cfg = IcpConfig(gates=(0.5, 0.2), tol_translation=1e-10, tol_rotation=1e-10, max_iterations=100)
+    cfg = IcpConfig(gates_m=(0.5, 0.2), tol_translation_m=1e-10, tol_rotation_rad=1e-10, max_iterations=100)
     out = []
     for threshold in (0, 10**9):
         monkeypatch.setattr(p2pl, "INCREMENTAL_MIN_POINTS", threshold)

@@ -152,7 +152,7 @@ def test_icp_odometry_keeps_the_wheel_guess_when_icp_jumps_out_of_its_basin():
     wall = np.c_[np.full(181, 3.0), np.linspace(-2.0, 2.0, 181)]  # a wall 3 m ahead
     other = np.c_[np.full(181, 2.2), np.linspace(-2.0, 2.0, 181)]  # the next scan sees it 0.8 m closer
     odo0, odo1 = np.eye(4), geo.xytheta_to_matrix(0.05, 0.0, 0.0)  # but the wheels say 5 cm
-    icp_cfg = IcpConfig(gates=(1.0, 0.5), max_iterations=30)
+    icp_cfg = IcpConfig(gates_m=(1.0, 0.5), max_iterations=30)
     out = {}
     for bound in (None, 0.3):
         odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, max_guess_deviation_m=bound))
@@ -199,10 +199,10 @@ def test_icp_odometry_survives_wheel_odometry_logged_in_lumps():
     steps = [8.0, 8.0, 0.0, 0.0, 0.0, 0.0, 40.0, 8.0, 8.0]
     frames, truth = _turning_in_place(steps)
     assert np.isclose(np.sum(steps), np.degrees(truth[-1]))
-    icp_cfg = IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05, workers=1)
+    icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
     final = {}
     for alt in (None, 0.05):
-        odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_size=0.03,
+        odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
                                             max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
                                             alternative_start_m=alt, alternative_start_rad=alt))
         odo.run(frames)
@@ -239,8 +239,8 @@ def test_steady_wheel_odometry_is_not_second_guessed():
         pts = np.column_stack([R[k][ok] * np.cos(ang[ok]), R[k][ok] * np.sin(ang[ok])])
         frames.append(Frame(stamp=0.1 * k, points=pts, index=k, angles=ang, ranges=R[k],
                             odom=geo.xytheta_to_matrix(0.12 * k, 0.0, 0.0)))
-    icp_cfg = IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05, workers=1)
-    odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_size=0.03,
+    icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
+    odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
                                         max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
                                         alternative_start_m=0.05, alternative_start_rad=0.05))
     odo.run(frames)
@@ -275,13 +275,13 @@ def test_wheel_prior_holds_icp_odometry_in_a_featureless_corridor():
     The first step is left out: with no earlier wheel increment it is judged lumpy and has no prior."""
     from registration.config import IcpConfig, IcpOdometryConfig
 
-    icp_cfg = IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05, workers=1)
+    icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
     worst = {}
     for prior in (None, 0.5):
-        odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_size=0.03,
+        odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
                                             max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
                                             alternative_start_m=0.05, alternative_start_rad=0.05,
-                                            prior_point_sigma=prior))
+                                            prior_point_sigma_m=prior))
         odo.run(_straight_corridor(30, 0.2, seed=1))
         worst[prior] = np.abs(np.diff(odo.poses()[:, 0, 3])[1:] - 0.2).max()
     assert worst[0.5] < 1e-3
@@ -302,9 +302,10 @@ def test_without_wheels_a_correlative_search_places_scans_the_constant_velocity_
     truth = geo.relative(geo.xytheta_to_matrix(*xyt[0]), geo.xytheta_to_matrix(*xyt[-1]))
     errors = {}
     for window in (None, 1.0):
-        odo = IcpOdometry(IcpOdometryConfig(icp=IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05),
-                                            point_to_plane=True, use_wheel_odometry=False, map_voxel_size=0.03,
-                                            unguided_window_m=window, unguided_window_rad=np.radians(30.0)))
+        odo = IcpOdometry(IcpOdometryConfig(icp=IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05),
+                                            point_to_plane=True, map_voxel_m=0.03,
+                                            unguided_window_m=window, unguided_window_rad=np.radians(30.0)),
+                          use_wheel_odometry=False)
         odo.run(frames)
         E = geo.relative(truth, odo.world_T_sensor)
         errors[window] = (np.linalg.norm(E[:2, 3]), abs(np.degrees(geo.matrix_to_xytheta(E)[2])))
@@ -326,10 +327,10 @@ def test_without_wheels_a_turn_beyond_the_window_is_found_by_the_escalated_searc
     truth = geo.relative(geo.xytheta_to_matrix(*xyt[0]), geo.xytheta_to_matrix(*xyt[-1]))
     errors, escalations = {}, {}
     for escalation in (None, 0.8):
-        odo = IcpOdometry(IcpOdometryConfig(icp=IcpConfig(gates=(0.3,), max_iterations=30, robust="cauchy", robust_scale=0.05),
-                                            point_to_plane=True, use_wheel_odometry=False, map_voxel_size=0.03,
+        odo = IcpOdometry(IcpOdometryConfig(icp=IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05),
+                                            point_to_plane=True, map_voxel_m=0.03,
                                             unguided_window_m=1.0, unguided_window_rad=np.radians(30.0),
-                                            unguided_escalation=escalation))
+                                            unguided_escalation=escalation), use_wheel_odometry=False)
         odo.run(frames)
         E = geo.relative(truth, odo.world_T_sensor)
         errors[escalation] = (np.linalg.norm(E[:2, 3]), abs(np.degrees(geo.matrix_to_xytheta(E)[2])))

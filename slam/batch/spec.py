@@ -15,14 +15,14 @@ A spec is YAML. Relative paths are relative to the spec's folder; log paths may 
           odometry.use_wheel_odometry: false
     sweep:                       # NAME=start:stop:count, the grammar of `slam loops` (slam.pipeline.loop_sweep):
       - exclude_recent_keyframes=10:20:3   # a bare name is a loops setting,
-      - odometry.icp_tolerance=4e-4:6e-4:3 # a dotted one any numeric config value
+      - odometry.icp_2d.icp.tol_translation_m=4e-4:6e-4:3 # a dotted one any numeric config value
     settings:                    # explicit settings, each some config values and an optional id
       - {id: default}
       - {id: chordal, backend.kind: chordal}
 
 The settings are the explicit ones (default: one that changes nothing) × the sweep grid; the batch is
 every log × every setting, each run evaluated when it has a reference. Config values may be nested
-(``odometry: {max_range_m: 20}``) or dotted (``odometry.max_range_m: 20``). Everything is checked before any
+(``keyframes: {max_range_m: 20}``) or dotted (``keyframes.max_range_m: 20``). Everything is checked before any
 run: a mistake is one :class:`~core.errors.InputFileError` naming the spec and the entry
 (``logs[2].config``).
 """
@@ -138,7 +138,7 @@ def _sha_or_none(p: Path | None) -> str | None:
 
 
 def _flatten(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"odometry": {"max_range_m": 20}, "loops.icp_tolerance": 2e-4}`` → ``{"odometry.max_range_m": 20, "loops.icp_tolerance": 2e-4}``."""
+    """``{"keyframes": {"max_range_m": 20}, "loops.icp_tolerance_m": 2e-4}`` → ``{"keyframes.max_range_m": 20, "loops.icp_tolerance_m": 2e-4}``."""
     out: dict[str, Any] = {}
     for k, v in values.items():
         key = f"{prefix}{k}"

@@ -59,7 +59,7 @@ def batch(
                                             "logs (paths or globs) for the short form."),
     out: Path = typer.Option(..., "--out", help="Batch folder: runs/<log>/<setting>/, results.csv/.json/.md, report.html."),
     sweep: list[str] = typer.Option([], "--sweep", help="Short form: NAME=start:stop:count (as slam loops; a dotted "
-                                    "name such as odometry.icp_tolerance for any numeric config value); repeat for a grid."),
+                                    "name such as odometry.icp_2d.icp.tol_translation_m for any numeric config value); repeat for a grid."),
     config: Path | None = typer.Option(None, "--config", help="Short form: the base YAML configuration."),
     address: str | None = typer.Option(None, "--address", help="A running Ray cluster (auto, HOST:6379 or "
                                        "ray://HOST:10001); default: a local Ray started for this batch and stopped after."),

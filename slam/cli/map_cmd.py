@@ -91,7 +91,7 @@ def map_command(
     cfg = MappingConfig()
     if config is not None:
         cfg = load_yaml(MappingConfig, config)
-    cfg = cfg.model_copy(update={"method": method.value, "resolution": resolution})
+    cfg = cfg.model_copy(update={"method": method.value, "resolution_m": resolution})
     reader = open_log(log, topic)
     frames = [clip_range(f, max_range) for i, f in enumerate(reader.frames()) if i % every == 0]
     frames = [f for f in frames if f.ranges is not None]

@@ -90,12 +90,12 @@ class Verifier:
         self.dof = 3 if planar else 6
         self.maps = maps
         c = config
-        self._icp = IcpConfig(gates=c.icp_gates_m, max_iterations=c.icp_max_iterations,
-                              tol_translation=c.icp_tolerance, tol_rotation=c.icp_tolerance,
-                              robust="cauchy", robust_scale=c.icp_sigma_m * 2.0, sigma=c.icp_sigma_m,
+        self._icp = IcpConfig(gates_m=c.icp_gates_m, max_iterations=c.icp_max_iterations,
+                              tol_translation_m=c.icp_tolerance_m, tol_rotation_rad=c.icp_tolerance_rad,
+                              robust="cauchy", robust_scale_m=c.icp_sigma_m * 2.0, sigma_m=c.icp_sigma_m,
                               chi2_factor=c.chi2_factor, covariance_model="plane", workers=1)
         self.gate = float(chi2.ppf(c.consistency_probability, self.dof))
-        self._icp_fine = self._icp.model_copy(update={"gates": tuple(g for g in c.icp_gates_m if g < c.icp_gates_m[0]) or c.icp_gates_m})
+        self._icp_fine = self._icp.model_copy(update={"gates_m": tuple(g for g in c.icp_gates_m if g < c.icp_gates_m[0]) or c.icp_gates_m})
         self._align = icp if c.icp_method == "point" else icp_point_to_plane
 
     # ------------------------------------------------------------------ the keyframe's own registration
@@ -230,9 +230,9 @@ class Verifier:
         if self.planar and self.config.correlative:
             return self._icp
         w = min(2.0, c.window.xy_m)
-        if w <= self._icp.gates[0]:
+        if w <= self._icp.gates_m[0]:
             return self._icp
-        return self._icp.model_copy(update={"gates": (w,) + tuple(self._icp.gates)})
+        return self._icp.model_copy(update={"gates_m": (w,) + tuple(self._icp.gates_m)})
 
     def _elsewhere_ratio(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array,
                          floor: float) -> float:

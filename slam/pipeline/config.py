@@ -8,10 +8,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mapping.config import MappingConfig
+from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
 from slam.keyframes import KeyframeConfig
 from slam.loops.config import LoopConfig
 
@@ -20,28 +22,62 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+# The odometry defaults of the pipeline (docs/ODOMETRY.md has the evidence for each).
+#: Planar scans, our ICP: point-to-line steps from the wheel guess through one 0.3 m gate with a Cauchy
+#: kernel, a local map of the last 10 scans at 3 cm; a step 0.3 m / 0.35 rad off the wheel guess is a
+#: failure; without wheels, a ±1 m / ±30° correlative search first.
+PLANAR_ICP = IcpOdometryConfig(
+    icp=IcpConfig(gates_m=(0.3,), max_iterations=30, tol_translation_m=5e-4, tol_rotation_rad=5e-4, robust="cauchy",
+                  robust_scale_m=0.05, workers=1),
+    map_scans=10, point_to_plane=True, map_voxel_m=0.03, map_step_m=0.0, map_step_rad=0.1, max_range_m=30.0,
+    min_range_m=0.05, max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35, alternative_start_m=0.05,
+    alternative_start_rad=0.05, unguided_window_m=1.0, unguided_window_rad=float(np.radians(30.0)))
+#: 3D clouds, our ICP: coarse-to-fine gates on 0.5 m voxels against a 0.3 m local map.
+SPATIAL_ICP = PLANAR_ICP.model_copy(update={
+    "icp": IcpConfig(gates_m=(1.5, 0.6, 0.3), voxel_m=0.5, robust="cauchy", robust_scale_m=0.2),
+    "map_voxel_m": 0.3, "max_range_m": 100.0, "unguided_window_m": None})
+#: KISS-ICP: its own defaults for 3D, the indoor planar ones (``KissOdometryConfig.planar_default``) to
+#: 30 m for planar scans; the pipeline computes its own keyframe-edge covariance, so KISS's per-scan one is off.
+PLANAR_KISS = KissOdometryConfig.planar_default().model_copy(update={"max_range_m": 30.0, "compute_covariance": False})
+SPATIAL_KISS = KissOdometryConfig(compute_covariance=False)
+
+
+def _merged(default: dict, given: dict) -> dict:
+    """*given* over *default*, nested mappings merged key by key."""
+    out = dict(default)
+    for key, value in given.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
 class OdometryStageConfig(_Model):
     """Which registration source gives odometry: ``kiss`` (KISS-ICP), ``icp`` (our scan-to-map SVD-ICP)
     or ``auto`` — KISS-ICP for 3D clouds, our ICP for planar scans (KISS-ICP's constant-velocity model
     loses track of a planar laser where the robot turns in place; measurements in ``docs/ODOMETRY.md``).
-    Every default below is explained there with its evidence."""
+    Each source has its settings for planar scans and for 3D clouds (``icp_2d``, ``icp_3d``, ``kiss_2d``,
+    ``kiss_3d``: ``registration.config``); every default is explained in ``docs/ODOMETRY.md`` with its
+    evidence."""
 
     method: Literal["auto", "kiss", "icp"] = "auto"
-    use_wheel_odometry: bool = True
-    icp_point_to_plane: bool = Field(True, description="our ICP odometry: point-to-line/plane steps instead of point-to-point")
-    icp_gates_m: tuple[float, ...] = Field((0.3,), description="2D, our ICP odometry: correspondence gates, coarse to fine, from the wheel guess")
-    icp_tolerance: float = Field(5e-4, gt=0, description="2D, our ICP odometry: a gate stage ends when the pose increment is below this (m and rad)")
-    icp_map_step_m: float = Field(0.0, ge=0, description="our ICP odometry: a scan joins the local map after this much motion (0 = every scan) ...")
-    icp_max_guess_deviation_m: float | None = Field(0.3, gt=0, description="our ICP odometry: a step this far from the wheel guess is a failure ...")
-    icp_max_guess_deviation_rad: float | None = Field(0.35, gt=0, description="... or turned this much more; the wheel guess is kept")
-    icp_alternative_start_m: float | None = Field(0.05, gt=0, description="our ICP odometry: when the wheel increment differs by more than this (or the angle below) both from the last estimated increment and from the previous wheel increment (wheel odometry logged in lumps), ICP also starts from the last increment and the clearly better fit wins")
-    icp_alternative_start_rad: float | None = Field(0.05, gt=0)
-    icp_map_step_rad: float = Field(0.1, gt=0, description="... or this much turning (the map's k-d tree is rebuilt only then)")
-    icp_wheel_prior_sigma: float | None = Field(None, gt=0, description="our ICP odometry with smooth wheel odometry: the wheel prediction enters each ICP step as a prior with the wheel_sigma_* model below (floors 1 cm, 5 mrad), weighed against point residuals of this σ (m); None = no prior (the default: it helps short stretches but lets drift grow, see docs/ODOMETRY.md)")
-    unguided_window_m: float | None = Field(1.0, gt=0, description="2D, our ICP odometry without wheel odometry: each scan is first placed by a correlative search of ± this (m, x and y) around the constant-velocity guess on the local map, as far as the robot may stray from constant velocity between two scans; None = ICP from the guess alone")
-    unguided_window_deg: float = Field(30.0, gt=0, description="... and ± this in heading (degrees)")
-    max_range_m: float = Field(30.0, gt=0, description="2D: beams beyond this are ignored for registration")
-    min_range_m: float = Field(0.05, ge=0, description="2D: beams shorter than this are ignored for registration")
+    use_wheel_odometry: bool = Field(True, description="the log's wheel odometry predicts each scan's pose (else constant velocity)")
+    icp_2d: IcpOdometryConfig = Field(default_factory=lambda: PLANAR_ICP, description="our ICP odometry on planar scans")
+    icp_3d: IcpOdometryConfig = Field(default_factory=lambda: SPATIAL_ICP, description="our ICP odometry on 3D clouds")
+    kiss_2d: KissOdometryConfig = Field(default_factory=lambda: PLANAR_KISS, description="KISS-ICP on planar scans")
+    kiss_3d: KissOdometryConfig = Field(default_factory=lambda: SPATIAL_KISS, description="KISS-ICP on 3D clouds")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _onto_pipeline_defaults(cls, data: object) -> object:
+        """A partial ``icp_2d`` (…) given as a mapping changes the pipeline's defaults above, not the
+        registration model's own: ``icp_2d: {icp: {gates_m: [0.5]}}`` keeps every other planar setting."""
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        for name, default in (("icp_2d", PLANAR_ICP), ("icp_3d", SPATIAL_ICP), ("kiss_2d", PLANAR_KISS),
+                              ("kiss_3d", SPATIAL_KISS)):
+            if isinstance(data.get(name), dict):
+                data[name] = _merged(default.model_dump(), data[name])
+        return data
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
     # at the odometry's relative pose (registration.covariance), with this residual σ and gate.
     edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
@@ -86,7 +122,7 @@ class MappingStageConfig(_Model):
     """Occupancy map from the keyframe scans: Fast-GPOM submaps built online, fused at the optimised poses.
 
     ``params.method`` ``gpom`` / ``logodds`` build the baseline maps from the keyframes at the final
-    poses instead; ``params.resolution`` is the cell size.
+    poses instead; ``params.resolution_m`` is the cell size.
     """
 
     enabled: bool = True

@@ -135,7 +135,7 @@ class FrontEnd:
         if len(prev.points) < 10 or len(kf.points) < 10:
             return None
         rel_sensor = G.inverse(prev.base_T_sensor) @ rel_base @ kf.base_T_sensor
-        cfg = IcpConfig(gates=(c.edge_gate_m,), sigma=c.edge_sigma_m, covariance_model="plane", workers=1,
+        cfg = IcpConfig(gates_m=(c.edge_gate_m,), sigma_m=c.edge_sigma_m, covariance_model="plane", workers=1,
                         normal_neighbors=8)
         try:
             res = evaluate_alignment(kf.points, IcpTarget(prev.points, normal_neighbors=8, workers=1), rel_sensor,
@@ -243,7 +243,8 @@ class FrontEnd:
             pts = frame.points
             r = np.linalg.norm(pts, axis=1)
             c = self.config.odometry
-            pts = pts[(r >= c.min_range_m) & (r <= c.max_range_m)]
+            kc = self.config.keyframes
+            pts = pts[(r >= kc.min_range_m) & (r <= kc.max_range_m)]
             vs = 0.02 if frame.is_planar else 0.3
             kf = Keyframe(self._count, len(self.track.stamps) - 1, frame.stamp, pose,
                           np.asarray(frame.base_T_sensor, dtype=float), voxel_downsample(pts, vs), frame)

@@ -14,7 +14,7 @@ scored on the closures the verifier accepted (before the back end's pruning):
 A sweep is written ``NAME=start:stop:count`` (``count`` values evenly spaced from ``start`` to ``stop``,
 both included; integer fields are rounded); several sweeps form their cartesian product. ``slam loops``
 sweeps :class:`LoopConfig` fields by name; ``slam batch`` uses the same grammar with dotted names into
-:class:`SlamConfig` (:func:`numeric_fields`, e.g. ``odometry.icp_tolerance``). Each grid point is scored
+:class:`SlamConfig` (:func:`numeric_fields`, e.g. ``odometry.icp_2d.icp.tol_translation_m``). Each grid point is scored
 by :func:`score_setting`, one call per setting, which a parallel executor may run anywhere.
 """
 
@@ -73,7 +73,7 @@ class SweepResult:
 
 def numeric_fields(model: type[BaseModel], prefix: str = "") -> dict[str, type]:
     """Fields of *model* a sweep may vary, by (dotted) name: the int and float ones, optional (None = off)
-    or not, also inside nested models (``numeric_fields(SlamConfig)`` has ``"loops.icp_tolerance"``)."""
+    or not, also inside nested models (``numeric_fields(SlamConfig)`` has ``"loops.icp_tolerance_m"``)."""
     out: dict[str, type] = {}
     for name, f in model.model_fields.items():
         ann = f.annotation
@@ -104,7 +104,7 @@ def parse_sweep(text: str, fields: dict[str, type] | None = None) -> Sweep:
             known = ", ".join(sorted(fields))
         else:
             kind = "is not a numeric setting"
-            known = "dotted config names, e.g. loops.icp_tolerance, odometry.icp_tolerance, max_scans"
+            known = "dotted config names, e.g. loops.icp_tolerance_m, odometry.icp_2d.icp.tol_translation_m, max_scans"
         raise ConfigError(f"--sweep {text!r}: {name!r} {kind}; sweepable: {known}")
     parts = spec.split(":")
     if len(parts) != 3:

@@ -119,7 +119,7 @@ class MapBuilder:
     def _geometry_around(self, centres: Array) -> GridGeometry:
         h = self.config.submap_half_size_m
         lo, hi = centres.min(axis=0) - h, centres.max(axis=0) + h
-        return GridGeometry.covering(lo, hi, self.config.params.resolution, margin=h)
+        return GridGeometry.covering(lo, hi, self.config.params.resolution_m, margin=h)
 
     def add_keyframe(self, kf: Keyframe, pose: Array) -> None:
         """Fuse keyframe *kf* (at its current estimate *pose*, world_T_base) into the current submap; for the
