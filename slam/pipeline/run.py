@@ -1,4 +1,4 @@
-"""``run_slam``: the whole pipeline on one log, streaming its frames once.
+"""``Pipeline``: the whole pipeline on one log, streaming its frames once (``run_slam`` for short).
 
 1. odometry per scan (KISS-ICP or our scan-to-map ICP; wheel odometry as the initial guess), in its
    own process by default, running ahead of the rest;
@@ -65,88 +65,103 @@ class SlamResult:
 
 
 def run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> SlamResult:
-    """Run the pipeline over an iterable of :class:`Frame` (time order). BLAS runs single-threaded.
-
-    With ``config.stage_processes`` (the default) odometry and mapping run in child processes
-    (:mod:`slam.pipeline.front_process`, :mod:`slam.pipeline.mapping_process`); a script calling this
-    then needs the usual
-    ``if __name__ == "__main__":`` guard of multiprocessing. A frame generator is closed on the way
-    out, also on an error or Ctrl-C, so a reader's background thread stops here rather than at
-    interpreter shutdown."""
-    from slam.blas import single_blas_thread
-
-    try:
-        with single_blas_thread():
-            return _run_slam(frames, config, progress)
-    finally:
-        close = getattr(frames, "close", None)
-        if close is not None:
-            close()
+    """``Pipeline(config, progress).run(frames)``."""
+    return Pipeline(config, progress).run(frames)
 
 
-def _run_slam(frames, config: SlamConfig, progress: Callable[[Progress], None] | None) -> SlamResult:
-    from .mapping_process import MappingProcess, start_mapping
+class Pipeline:
+    """The whole SLAM pipeline on one log: the front end's frame loop (:func:`run_front_end`, shared with
+    the loop replay), loop closure and the back end (:class:`OnlineGraph`, also shared with the replay)
+    and the mapping stage for every keyframe, then the final solve, the self-check, every scan's pose
+    and the map. One object per run."""
 
-    t_start = time.perf_counter()
-    times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
-    keyframes: list[Keyframe] = []
-    # Loop closure + back end and the mapping stage, made for the first keyframe's dimension.
-    graph: OnlineGraph | None = None
-    mapper = None
+    def __init__(self, config: SlamConfig, progress: Callable[[Progress], None] | None = None) -> None:
+        self.config = config
+        self.progress = progress
+        self.keyframes: list[Keyframe] = []
+        self.graph: OnlineGraph | None = None  # loop closure + back end, made for the first keyframe's dimension
+        self.mapper = None  # the mapping stage (inline or its process), likewise
+        self.times = {"odometry_s": 0.0, "loop_closure_s": 0.0, "backend_s": 0.0, "mapping_s": 0.0, "final_solve_s": 0.0}
+        self._t_start = 0.0
 
-    def add_keyframe(kf: Keyframe, edge, wheel) -> None:  # type: ignore[no-untyped-def]
-        nonlocal graph, mapper
-        if graph is None:
+    def run(self, frames) -> SlamResult:  # type: ignore[no-untyped-def]
+        """Run over an iterable of :class:`Frame` (time order). BLAS runs single-threaded.
+
+        With ``config.stage_processes`` (the default) odometry and mapping run in child processes
+        (:mod:`slam.pipeline.front_process`, :mod:`slam.pipeline.mapping_process`); a script calling this
+        then needs the usual ``if __name__ == "__main__":`` guard of multiprocessing. A frame generator is
+        closed on the way out, also on an error or Ctrl-C, so a reader's background thread stops here
+        rather than at interpreter shutdown."""
+        from slam.blas import single_blas_thread
+
+        try:
+            with single_blas_thread():
+                return self._run(frames)
+        finally:
+            close = getattr(frames, "close", None)
+            if close is not None:
+                close()
+
+    def add_keyframe(self, kf: Keyframe, edge, wheel) -> None:  # type: ignore[no-untyped-def]
+        """The back half for one keyframe from the front end: loop closure, the graph, the map."""
+        from .mapping_process import start_mapping
+
+        if self.graph is None:
             planar = kf.frame.is_planar
-            graph = OnlineGraph(config.loops, config.backend, planar)
-            mapper = start_mapping(config.mapping, planar, config.stage_processes)
-        keyframes.append(kf)
-        new = graph.add(keyframes, edge, wheel)
+            self.graph = OnlineGraph(self.config.loops, self.config.backend, planar)
+            self.mapper = start_mapping(self.config.mapping, planar, self.config.stage_processes)
+        self.keyframes.append(kf)
+        new = self.graph.add(self.keyframes, edge, wheel)
         t5 = time.perf_counter()
-        mapper.add_keyframe(kf, graph.backend.poses[kf.id])
+        self.mapper.add_keyframe(kf, self.graph.backend.poses[kf.id])
         kf.drop_cloud()  # loop closure and mapping have read it: a 3D cloud is not needed again
         if new:
-            mapper.refresh(graph.backend.poses)
-        times["mapping_s"] += time.perf_counter() - t5
+            self.mapper.refresh(self.graph.backend.poses)
+        self.times["mapping_s"] += time.perf_counter() - t5
 
-    def on_scan(n: int, _frame) -> None:  # type: ignore[no-untyped-def]
-        if progress is not None:
-            loops = len(graph.loops) if graph is not None else 0
-            progress(Progress(n, len(keyframes), loops, time.perf_counter() - t_start))
+    def _on_scan(self, n: int, _frame) -> None:  # type: ignore[no-untyped-def]
+        if self.progress is not None:
+            loops = len(self.graph.loops) if self.graph is not None else 0
+            self.progress(Progress(n, len(self.keyframes), loops, time.perf_counter() - self._t_start))
 
-    try:
-        summary = run_front_end(frames, config, add_keyframe, on_scan)
-        if graph is None or mapper is None:
-            raise GpslamError("the log yielded no scans")
-        planar = keyframes[0].frame.is_planar
-        t4 = time.perf_counter()
-        kf_poses = graph.finish()
-        times["final_solve_s"] = time.perf_counter() - t4
-        t7 = time.perf_counter()
-        check = self_check(keyframes, kf_poses, graph.loops, planar).as_dict()
-        times["self_check_s"] = time.perf_counter() - t7
-        t6 = time.perf_counter()
-        occ = mapper.finish(kf_poses)
+    def _run(self, frames) -> SlamResult:  # type: ignore[no-untyped-def]
+        from .mapping_process import MappingProcess
+
+        self._t_start = time.perf_counter()
+        times = self.times
+        try:
+            summary = run_front_end(frames, self.config, self.add_keyframe, self._on_scan)
+            graph, mapper, keyframes = self.graph, self.mapper, self.keyframes
+            if graph is None or mapper is None:
+                raise GpslamError("the log yielded no scans")
+            planar = keyframes[0].frame.is_planar
+            t4 = time.perf_counter()
+            kf_poses = graph.finish()
+            times["final_solve_s"] = time.perf_counter() - t4
+            t7 = time.perf_counter()
+            check = self_check(keyframes, kf_poses, graph.loops, planar).as_dict()
+            times["self_check_s"] = time.perf_counter() - t7
+            t6 = time.perf_counter()
+            occ = mapper.finish(kf_poses)
+            if isinstance(mapper, MappingProcess):
+                times["mapping_s"] += mapper.time_s  # the child's busy time; this process only sent it scans
+            else:
+                times["mapping_s"] += time.perf_counter() - t6
+        finally:
+            if self.mapper is not None:
+                self.mapper.close()
+        times["odometry_s"] = summary.odometry_s
+        times.update(graph.times)
+        tr = summary.track
+        stamps = np.asarray(tr.stamps)
+        odom = np.asarray(tr.odom_poses)
+        kfs = keyframes
+        poses = interpolate_scan_poses(stamps, odom, np.asarray(tr.keyframe), np.array([k.stamp for k in kfs]),
+                                       np.array([k.odom_pose for k in kfs]), kf_poses, planar)
+        wheel = np.asarray(tr.wheel_poses) if all(w is not None for w in tr.wheel_poses) else None
+        peaks = {"front_end": summary.peak_memory_mb} if self.config.stage_processes else {}
         if isinstance(mapper, MappingProcess):
-            times["mapping_s"] += mapper.time_s  # the child's busy time; this process only sent it scans
-        else:
-            times["mapping_s"] += time.perf_counter() - t6
-    finally:
-        if mapper is not None:
-            mapper.close()
-    times["odometry_s"] = summary.odometry_s
-    times.update(graph.times)
-    tr = summary.track
-    stamps = np.asarray(tr.stamps)
-    odom = np.asarray(tr.odom_poses)
-    kfs = keyframes
-    poses = interpolate_scan_poses(stamps, odom, np.asarray(tr.keyframe), np.array([k.stamp for k in kfs]),
-                                   np.array([k.odom_pose for k in kfs]), kf_poses, planar)
-    wheel = np.asarray(tr.wheel_poses) if all(w is not None for w in tr.wheel_poses) else None
-    stats = graph.stats
-    peaks = {"front_end": summary.peak_memory_mb} if config.stage_processes else {}
-    if isinstance(mapper, MappingProcess):
-        peaks["mapping"] = mapper.peak_memory_mb
-    return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, graph.backend, graph.loops, stats, times, occ,
-                      map_scans_fused=mapper.scans_fused, odometry_stats=summary.stats, peak_memory_mb=peaks,
-                      self_check=check)
+            peaks["mapping"] = mapper.peak_memory_mb
+        return SlamResult(planar, stamps, poses, odom, wheel, kfs, kf_poses, graph.backend, graph.loops, graph.stats,
+                          times, occ, map_scans_fused=mapper.scans_fused, odometry_stats=summary.stats,
+                          peak_memory_mb=peaks, self_check=check)
