@@ -9,11 +9,10 @@
    per cloud) written with ``McapLogWriter.write_pointcloud`` and read back with
    ``open_log(path)``; throughput = PointCloud2 payload bytes / wall time to materialise all
    ``(N, 3)`` float64 point arrays, for the writer's default zstd chunks (the summary figure)
-   and for uncompressed chunks. Target ≥ 500 MB/s. ``open_log`` reads chunk-indexed files with
-   the indexed chunk path (``slam/logs/mcap_chunks.py``), decompressing the next chunk on a worker
-   thread; the same path on one thread (``prefetch=0``), in skip mode (``frames(on_skip=...)``,
-   which reads through the same path) and the ``mcap`` library path the reader used before
-   (``indexed=False``) are measured beside it. References: the ``mcap`` library
+   and for uncompressed chunks. Target ≥ 500 MB/s. ``open_log`` reads chunk-indexed files chunk by
+   chunk through the ``mcap`` library (``slam/logs/mcap_indexed.py``); the same read in skip mode
+   (``frames(on_skip=...)``) and the library's ``SeekingReader`` in one go (``indexed=False``) are
+   measured beside it. References: the ``mcap`` library
    reading the same raw messages without decoding, and rosbags' ``deserialize_cdr`` + a numpy
    view (the reference decoder).
 
@@ -179,8 +178,6 @@ def bench_pointcloud2(clouds: int, points: int, repeats: int, tmp: Path) -> dict
         # correctness: the first cloud reads back bit-exactly (float32 values as float64)
         first = next(iter(open_log(path).frames()))
         exact = bool(np.array_equal(first.points, base))
-        single = lambda: _decode_all(path, prefetch=0)  # noqa: E731
-        single_best, _, _ = _best(single, repeats)
         skip_log = SkipLog()
         skipping = lambda: _decode_all(path, on_skip=skip_log)  # noqa: E731
         skip_best, _, (n_skip, _) = _best(skipping, repeats)
@@ -201,8 +198,6 @@ def bench_pointcloud2(clouds: int, points: int, repeats: int, tmp: Path) -> dict
             "decode_cpu_s_of_best": round(_CPU[id(decode)], 4),
             "decode_MBps_per_cpu_s": round(mb / max(_CPU[id(decode)], 1e-9), 1),
             "bit_exact_round_trip": exact,
-            "single_thread_MBps": round(mb / single_best, 1),
-            "single_thread_cpu_s_of_best": round(_CPU[id(single)], 4),
             "skip_mode_MBps": round(mb / skip_best, 1),
             "reference_library_path_MBps": round(mb / library_best, 1),
             "reference_library_path_cpu_s_of_best": round(_CPU[id(library)], 4),
@@ -242,7 +237,6 @@ def main() -> None:
         "pointcloud2_decode_MBps": p["zstd"]["decode_MBps"],
         "pointcloud2_decode_MBps_per_cpu_s": p["zstd"]["decode_MBps_per_cpu_s"],
         "pointcloud2_decode_MBps_uncompressed": p["none"]["decode_MBps"],
-        "pointcloud2_decode_MBps_single_thread": p["zstd"]["single_thread_MBps"],
         "pointcloud2_decode_MBps_skip_mode": p["zstd"]["skip_mode_MBps"],
         "pointcloud2_library_path_MBps": p["zstd"]["reference_library_path_MBps"],
         "pointcloud2_mcap_raw_read_zstd_MBps": p["zstd"]["reference_mcap_raw_read_MBps"],

@@ -1,10 +1,10 @@
-"""The indexed MCAP chunk path (slam/logs/mcap_chunks.py) against the mcap library's SeekingReader:
-same messages, same bytes, same order, same frames; bounded read-ahead; bad chunks are errors."""
+"""The chunk-by-chunk MCAP read (slam/logs/mcap_indexed.py) against the mcap library's SeekingReader:
+same messages, same bytes, same order, same frames; a bad chunk is an error naming its offset, or with
+on_skip is left out and the rest read."""
 
 from __future__ import annotations
 
 import tempfile
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from core import geometry as geo
 from core.errors import LogFormatError
-from slam.logs import mcap_chunks
+from slam.logs import mcap_indexed
 from slam.logs.mcap_reader import McapReader
 from slam.logs.mcap_writer import McapLogWriter
 
@@ -63,16 +63,15 @@ def assert_same_frames(a, b):
 
 
 @pytest.mark.parametrize("compression", COMPRESSIONS)
-@pytest.mark.parametrize("prefetch", [0, 2])
-def test_indexed_frames_equal_library_frames(tmp_path, compression, prefetch):
-    """For zstd, lz4 and uncompressed chunks, with and without read-ahead threads, the indexed path
+def test_indexed_frames_equal_library_frames(tmp_path, compression):
+    """For zstd, lz4 and uncompressed chunks, the chunk-by-chunk path
     and the mcap library give bit-identical frames (points, ranges, odometry, ground truth, mounts,
     stamps, indices) in the same order, for the LaserScan and for the PointCloud2 topic."""
     p = write_mixed_log(tmp_path / "m.mcap", compression)
-    fast = McapReader(p, prefetch=prefetch)
+    fast = McapReader(p)
     assert fast._use_index()
     for topic in ("/scan", "/points"):
-        assert_same_frames(list(McapReader(p, topic, prefetch=prefetch).frames()), list(McapReader(p, topic, indexed=False).frames()))
+        assert_same_frames(list(McapReader(p, topic).frames()), list(McapReader(p, topic, indexed=False).frames()))
     assert fast.info() == McapReader(p, indexed=False).info()
 
 
@@ -82,7 +81,7 @@ def test_overlapping_chunks_same_order(tmp_path, compression):
     out in the library's order — (log_time, chunk offset, position) — with the same bytes, for all
     topics and for each single-topic filter."""
     p = write_mixed_log(tmp_path / "o.mcap", compression, chunk_size=2048, jitter=0.25)
-    fast, lib = McapReader(p, prefetch=1), McapReader(p, indexed=False)
+    fast, lib = McapReader(p), McapReader(p, indexed=False)
     got, ref = raw_list(fast), raw_list(lib)
     assert got == ref
     times = [r[3] for r in got]
@@ -100,10 +99,10 @@ def message_plans(draw):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(plan=message_plans(), filt=st.sets(st.sampled_from(["/a", "/b", "/c", "/nope"])), prefetch=st.integers(0, 2))
-def test_random_logs_same_messages(plan, filt, prefetch):
+@given(plan=message_plans(), filt=st.sets(st.sampled_from(["/a", "/b", "/c", "/nope"])))
+def test_random_logs_same_messages(plan, filt):
     """Property: for random logs (out-of-order log times with many ties, random chunk size and
-    compression) and any topic filter, the indexed path yields exactly the library's messages —
+    compression) and any topic filter, the chunk-by-chunk path yields exactly the library's messages —
     payload bytes, log times, per-topic indices — in the library's order."""
     msgs, compression, chunk = plan
     with tempfile.TemporaryDirectory() as d:
@@ -111,53 +110,10 @@ def test_random_logs_same_messages(plan, filt, prefetch):
         with McapLogWriter(p, compression=compression, chunk_size=chunk) as w:
             for k, (s, topic) in enumerate(msgs):
                 w.write_odometry(topic, 100.0 + 0.5 * s, "odom", "base_link", geo.xytheta_to_matrix(k, 0.0, 0.0))
-        fast, lib = McapReader(p, prefetch=prefetch), McapReader(p, indexed=False)
+        fast, lib = McapReader(p), McapReader(p, indexed=False)
         assert fast._use_index()
         for topics in (None, filt):
             assert raw_list(fast, topics) == raw_list(lib, topics)
-
-
-@pytest.mark.parametrize("compression", COMPRESSIONS)
-def test_payloads_are_views_and_outlive_the_reader(tmp_path, compression):
-    """Payloads are not copied (a memoryview into the decompressed chunk or the file map) and stay
-    valid after the iteration is closed."""
-    p = write_mixed_log(tmp_path / "v.mcap", compression, n=6)
-    it = McapReader(p, prefetch=1)._raw_messages({"/points"})
-    first = next(it)
-    it.close()
-    assert isinstance(first.data, memoryview)
-    ref = next(McapReader(p, indexed=False)._raw_messages({"/points"}))
-    assert bytes(first.data) == ref.data
-
-
-def test_read_ahead_is_bounded_and_threads_stop(tmp_path, monkeypatch):
-    """Streaming: when a message with log time t is handed out, at most k(t) + prefetch chunks have
-    been read, k(t) being the number of chunks starting at or before t — whatever the log length;
-    closing the iteration early stops the worker threads."""
-    p = write_mixed_log(tmp_path / "b.mcap", "zstd", n=120, chunk_size=1024)
-    summary = McapReader(p)._summary()
-    starts = np.sort([c.message_start_time for c in summary.chunk_indexes])
-    assert len(starts) > 50
-    loaded: list[int] = []
-    real = mcap_chunks.load_chunk
-
-    def counting(view, index):
-        loaded.append(index.chunk_start_offset)
-        return real(view, index)
-
-    monkeypatch.setattr(mcap_chunks, "load_chunk", counting)
-    threads_before = threading.active_count()
-    for prefetch in (0, 1, 2):
-        loaded.clear()
-        it = mcap_chunks.indexed_messages(p, summary, prefetch=prefetch)
-        for n_msgs, (_cid, t, _data) in enumerate(it):
-            k = int(np.searchsorted(starts, t, side="right"))
-            assert len(loaded) <= k + prefetch, (n_msgs, len(loaded), k)
-            if n_msgs == 300:
-                break
-        it.close()
-        assert threading.active_count() == threads_before
-        assert len(loaded) < len(starts)
 
 
 @pytest.mark.parametrize("compression", COMPRESSIONS)
@@ -197,13 +153,13 @@ def test_wrong_chunk_offset_in_index(tmp_path):
     summary = McapReader(p)._summary()
     ci = summary.chunk_indexes[0]
     ci.chunk_start_offset += 1
-    with pytest.raises(mcap_chunks.ChunkError) as ei:
-        list(mcap_chunks.indexed_messages(p, summary))
+    with open(p, "rb") as fh, pytest.raises(mcap_indexed.ChunkError) as ei:
+        list(mcap_indexed.indexed_messages(fh, summary))
     assert ei.value.offset == ci.chunk_start_offset
 
 
 def test_files_without_index_use_the_library(tmp_path):
-    """A file without chunk indexes (truncated: no summary) is not read by the indexed path and
+    """A file without chunk indexes (truncated: no summary) is not read chunk by chunk and
     gives the library's error, naming the last good message."""
     p = write_mixed_log(tmp_path / "t.mcap", "zstd", n=60, chunk_size=4096)
     data = p.read_bytes()
@@ -260,7 +216,7 @@ def test_damaged_files_error_or_agree(compression, where, size, fill):
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "d.mcap"
         p.write_bytes(bytes(data))
-        fast = _outcome(McapReader(p, prefetch=1))
+        fast = _outcome(McapReader(p))
         lib = _outcome(McapReader(p, indexed=False))
     if fast != "error" and lib != "error":
         assert fast == lib
@@ -273,7 +229,7 @@ def test_damaged_files_error_or_agree(compression, where, size, fill):
 
 def chunk_contents(data: bytes) -> list[tuple[int, int, list[tuple[str, int, bytes]]]]:
     """Every chunk of an intact MCAP as ``(start, end, [(topic, log_time, payload), ...])``, read with the
-    mcap library (its own chunk reader), independently of the indexed path."""
+    mcap library (its own chunk reader), independently of the chunk-by-chunk path."""
     import io
 
     from mcap.data_stream import ReadDataStream
@@ -312,11 +268,10 @@ def without(msgs: list, lost: list) -> list:
 
 
 @pytest.mark.parametrize("compression", COMPRESSIONS)
-@pytest.mark.parametrize("prefetch", [0, 2])
 @pytest.mark.parametrize("topic", ["/scan", "/points"])
-def test_damaged_chunk_is_skipped_rest_bit_exact(tmp_path, compression, prefetch, topic):
+def test_damaged_chunk_is_skipped_rest_bit_exact(tmp_path, compression, topic):
     """A damaged chunk in the middle of a LaserScan + PointCloud2 MCAP, read with on_skip through the
-    indexed path (with and without read-ahead): exactly one skip, naming the file and the chunk's byte
+    chunk-by-chunk path: exactly one skip, naming the file and the chunk's byte
     offset; every message of every other chunk comes out with the intact file's bytes in the library's
     order; the frames of *topic* are the intact file's frames minus those whose message was in the
     damaged chunk, with bit-identical points, ranges and stamps. Without on_skip it is an error."""
@@ -335,13 +290,13 @@ def test_damaged_chunk_is_skipped_rest_bit_exact(tmp_path, compression, prefetch
     q = tmp_path / "bad.mcap"
     q.write_bytes(bytes(data))
 
-    reader = McapReader(q, topic, prefetch=prefetch)
-    assert reader._use_index(SkipLog()) and reader._use_index()
+    reader = McapReader(q, topic)
+    assert reader._use_index()
     with pytest.raises(LogFormatError, match=f"byte offset {start}"):
-        list(McapReader(q, topic, prefetch=prefetch).frames())
+        list(McapReader(q, topic).frames())
 
     log = SkipLog()
-    got = messages(McapReader(q, prefetch=prefetch), log)
+    got = messages(McapReader(q), log)
     assert got == without(messages(McapReader(p, indexed=False)), lost)
     assert len(log) == 1 and log.errors[0].where == f"byte offset {start}" and log.errors[0].path == str(q)
 
@@ -360,8 +315,8 @@ def test_damaged_chunk_is_skipped_rest_bit_exact(tmp_path, compression, prefetch
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(compression=st.sampled_from(COMPRESSIONS), which=st.floats(0.0, 1.0), where=st.floats(0.0, 1.0),
-       size=st.integers(1, 24), fill=st.sampled_from([0x00, 0xFF, 0x5A]), prefetch=st.integers(0, 2))
-def test_damage_inside_a_chunk_with_on_skip(compression, which, where, size, fill, prefetch):
+       size=st.integers(1, 24), fill=st.sampled_from([0x00, 0xFF, 0x5A]))
+def test_damage_inside_a_chunk_with_on_skip(compression, which, where, size, fill):
     """Property: overwritten bytes anywhere inside one chunk record, read with on_skip, never raise; the
     messages are either all of the intact file (the damage changed nothing that is read) with no skip,
     or exactly those of all other chunks, in order and bit-exact, with one skip naming that chunk."""
@@ -378,7 +333,7 @@ def test_damage_inside_a_chunk_with_on_skip(compression, which, where, size, fil
         p = Path(d) / "d.mcap"
         p.write_bytes(bytes(data))
         log = SkipLog()
-        got = messages(McapReader(p, prefetch=prefetch), log)
+        got = messages(McapReader(p), log)
         q = Path(d) / "c.mcap"
         q.write_bytes(clean)
         ref = messages(McapReader(q, indexed=False))
@@ -392,7 +347,7 @@ def test_damage_inside_a_chunk_with_on_skip(compression, which, where, size, fil
 
 def test_chunk_header_disagreeing_with_its_index(tmp_path):
     """An uncompressed chunk whose header sizes and CRC are zeroed reads as a valid empty chunk ("no
-    CRC", no records) to the mcap library; the indexed path compares the header with the chunk index
+    CRC", no records) to the mcap library; the chunk-by-chunk path compares the header with the chunk index
     (compression, compressed and uncompressed size): an error naming the chunk's byte offset, or with
     on_skip one skip of that chunk and every other message intact."""
     from slam.logs import SkipLog

@@ -1,12 +1,12 @@
 """MCAP reader for ROS 2 (CDR) — and ROS 1 — messages: LaserScan / PointCloud2 frames with
 odometry, ground truth and TF.
 
-The container is read streaming. With a summary section (chunk indexes) the chunks are read by
-:mod:`slam.logs.mcap_chunks` — the file memory-mapped, each chunk decompressed once, payloads
-handed out as views, the next chunks decompressed on a worker thread — in the ``mcap`` library's
-log-time order, holding one or a few chunks at a time. Without one (a file written by a streaming
-recorder, or a truncated file), or with a chunk compression it does not know, the ``mcap``
-library reads the file linearly, in file order (recorders write in arrival order).
+The container is read streaming, through the ``mcap`` library. With a summary section (chunk
+indexes) the chunks are read one by one in the library's log-time order (:mod:`slam.logs.mcap_indexed`:
+the library's records and message queue, each chunk on its own so that a damaged one is named by its
+byte offset), holding one or a few chunks at a time. Without one (a file written by a streaming
+recorder, or a truncated file) the library reads the file linearly, in file order (recorders write
+in arrival order).
 Messages are decoded with types built from the schemas carried in the file
 (``ros2msg`` / ``ros2idl`` / ``ros1msg``), registered with rosbags' ``get_types_from_msg`` /
 ``get_types_from_idl``, so files written by any ROS 2 tool decode, not only our own. Chunk
@@ -14,21 +14,20 @@ CRCs are checked, so flipped bytes surface as an error naming the message, not a
 
 Skipping (``frames(on_skip=...)``): a message that does not decode is left out; with a summary
 section, a corrupt chunk (header, decompression, CRC or record layout) is reported with its byte
-offset and left out, and the next chunks are read by the indexed path in the same log-time order;
-without one, the linear read cannot find the next record after a corrupt or cut one, so the
-messages end there (as they do with ``indexed=False``, which reads through the ``mcap`` library).
+offset and left out, and the next chunks are read in the same log-time order; without one, the
+linear read cannot find the next record after a corrupt or cut one, so the messages end there (as
+they do with ``indexed=False``, the library's own seeking reader).
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from core.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo, lost
-from .mcap_chunks import SUPPORTED_COMPRESSIONS, ChunkError, indexed_messages, message_counts
+from .mcap_indexed import ChunkError, indexed_messages, message_counts
 from .ros_msgs import RawMessage, cached_typestore, normalize_msgtype
 from .ros_reader import RosLogReader
 
@@ -38,26 +37,14 @@ _SCHEMA_ENCODINGS = {"ros2msg": "msg", "ros1msg": "msg", "ros2idl": "idl"}
 _MESSAGE_ENCODINGS = {"cdr", "ros1"}
 
 
-def default_prefetch() -> int:
-    """Chunks to decompress ahead: one worker beside the decoding thread on two CPUs, two on more."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # not on Linux
-        cpus = os.cpu_count() or 1
-    return 0 if cpus < 2 else 1 if cpus == 2 else 2
-
-
 class McapReader(RosLogReader):
     """Stream an MCAP file as Frames (see :class:`~slam.logs.ros_reader.RosLogReader` for the arguments).
 
     Args:
         validate_crcs: check chunk CRCs (catches flipped bytes in uncompressed chunks).
-        prefetch: chunks decompressed ahead on worker threads by the indexed path (0: none, all
-            work on the calling thread); memory grows by that many chunks, not with the log.
-            Default: 1 on a machine with two CPUs, 2 with more, 0 with one.
-        indexed: use the indexed chunk path when the file has chunk indexes (False: always the
-            ``mcap`` library; both yield the same messages in the same order, but with
-            ``on_skip`` the library path ends at the first corrupt chunk instead of skipping it).
+        indexed: read a chunk-indexed file chunk by chunk (:mod:`slam.logs.mcap_indexed`; False: the
+            library's ``SeekingReader`` in one go — the same messages in the same order, but an error
+            does not name the chunk, and with ``on_skip`` the messages end at the first corrupt chunk).
     """
 
     format = "mcap"
@@ -68,20 +55,17 @@ class McapReader(RosLogReader):
         topic: str | None = None,
         *,
         validate_crcs: bool = True,
-        prefetch: int | None = None,
         indexed: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(path, topic, **kwargs)
         self.validate_crcs = validate_crcs
-        self.prefetch = default_prefetch() if prefetch is None else int(prefetch)
         self.indexed = indexed
         self._topics: list[TopicInfo] | None = None
         self._store: Any = None
         self._encoding: dict[str, str] = {}  # topic -> message encoding
         self._bad_schema: dict[str, str] = {}  # topic -> why its schema cannot be used
         self._summary_cache: tuple[Any] | None = None  # (summary or None,) once read
-        self._index_ok: bool | None = None  # whether the indexed path reads the file as the library does
 
     # -- container ----------------------------------------------------------------------------
 
@@ -99,28 +83,10 @@ class McapReader(RosLogReader):
             self._summary_cache = (summary,)
         return self._summary_cache[0]
 
-    def _use_index(self, on_skip: SkipHandler | None = None) -> bool:
-        """Whether the indexed chunk path reads this file.
-
-        Without *on_skip*: chunk indexes present, every compression known, every indexed channel
-        and every channel's schema listed in the summary; anything else goes to the ``mcap``
-        library, which then reports the problem with its own error. With *on_skip*: whenever there
-        are chunk indexes, since a chunk the indexed path cannot read (unknown compression, a channel
-        the summary lacks) is then reported and skipped like any damaged chunk, and a channel
-        without a schema makes its messages undecodable, each reported."""
+    def _use_index(self) -> bool:
+        """Whether the file is read chunk by chunk: it has chunk indexes and ``indexed`` is on."""
         summary = self._summary()
-        if not self.indexed or summary is None or not summary.chunk_indexes:
-            return False
-        if on_skip is not None:
-            return True
-        if self._index_ok is None:
-            self._index_ok = all(
-                ch.schema_id == 0 or ch.schema_id in summary.schemas for ch in summary.channels.values()
-            ) and all(
-                ci.compression in SUPPORTED_COMPRESSIONS and all(c in summary.channels for c in ci.message_index_offsets)
-                for ci in summary.chunk_indexes
-            )
-        return self._index_ok
+        return self.indexed and summary is not None and bool(summary.chunk_indexes)
 
     def _library_records(self, fh, topics: set[str] | None) -> Iterator[tuple[Any, Any, Any]]:
         """(schema, channel, message) from the ``mcap`` library: in log-time order when the file is
@@ -241,7 +207,7 @@ class McapReader(RosLogReader):
     def _raw_messages(self, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[RawMessage]:
         self._load_meta()
         counts: dict[str, int] = {}
-        if self._use_index(on_skip):
+        if self._use_index():
             yield from self._indexed_raw_messages(topics, counts, on_skip)
             return
         with self._open() as fh:
@@ -255,42 +221,31 @@ class McapReader(RosLogReader):
     def _indexed_raw_messages(
         self, topics: set[str] | None, counts: dict[str, int], on_skip: SkipHandler | None
     ) -> Iterator[RawMessage]:
-        """The chunk-indexed path (:func:`slam.logs.mcap_chunks.indexed_messages`); payloads are views.
-        With *on_skip*, a chunk that cannot be read is reported (``byte offset N``) and left out."""
+        """Chunk by chunk (:func:`slam.logs.mcap_indexed.indexed_messages`). With *on_skip*, a chunk that
+        cannot be read is reported (``byte offset N``, with the messages its index says it held) and left out."""
         summary = self._summary()
-        meta: dict[int, tuple[str, str]] = {}  # channel id -> (topic, msgtype)
-        for cid, ch in summary.channels.items():
-            schema = summary.schemas.get(ch.schema_id)
-            meta[cid] = (ch.topic, normalize_msgtype(schema.name) if schema is not None else "(no schema)")
-        ids = None if topics is None else [cid for cid, (topic, _) in meta.items() if topic in topics]
 
         def chunk_skipped(exc: ChunkError, index: Any) -> None:
             assert on_skip is not None
             span = f"log time {index.message_start_time / 1e9:.9f}–{index.message_end_time / 1e9:.9f} s"
             what = f"corrupt MCAP chunk ({span}) skipped: {exc}"
-            held = message_counts(self.path, index)
+            with self._open() as idx:
+                held = message_counts(idx, index)
             per_topic = None if held is None else {}
             for cid, n in (held or {}).items():
-                if ids is None or cid in ids:
-                    per_topic[meta[cid][0]] = per_topic.get(meta[cid][0], 0) + n  # type: ignore[index]
+                ch = summary.channels.get(cid)
+                if ch is not None and (topics is None or ch.topic in topics):
+                    per_topic[ch.topic] = per_topic.get(ch.topic, 0) + n  # type: ignore[index]
             on_skip(lost(LogFormatError(self.path, f"byte offset {exc.offset}", what), per_topic))
 
-        it = indexed_messages(
-            self.path,
-            summary,
-            ids,
-            validate_crcs=self.validate_crcs,
-            prefetch=self.prefetch,
-            on_error=None if on_skip is None else chunk_skipped,
-        )
-        try:
-            topic_of = lambda item: meta[item[0]][0]  # noqa: E731
-            for cid, log_time, data in self._guard(it, lambda: -1, counts, topic_of, on_skip):
-                topic, mt = meta[cid]
+        with self._open() as fh:
+            it = indexed_messages(fh, summary, topics, validate_crcs=self.validate_crcs,
+                                  on_error=None if on_skip is None else chunk_skipped)
+            for schema, channel, message in self._guard(it, lambda: -1, counts, on_skip=on_skip):
+                topic = channel.topic
+                mt = normalize_msgtype(schema.name) if schema is not None else "(no schema)"
                 k = counts[topic]
-                yield RawMessage(k, topic, mt, log_time, data, f"{topic} message {k}")
-        finally:
-            it.close()
+                yield RawMessage(k, topic, mt, int(message.log_time), message.data, f"{topic} message {k}")
 
     def _decode(self, raw: RawMessage) -> Any:
         if raw.topic in self._bad_schema:
