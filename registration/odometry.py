@@ -43,6 +43,10 @@ from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
 
+#: the constant-velocity start is scaled to the scan interval across a gap (an interval ratio of at least
+#: _GAP_RATIO either way, at most _MAX_INTERVAL_RATIO) of regular stamps (_REGULAR_SPREAD, _constant_velocity)
+_GAP_RATIO, _MAX_INTERVAL_RATIO, _REGULAR_SPREAD = 2.0, 20.0, 0.25
+
 __all__ = ["OdometryStep", "Odometry", "KissOdometry", "IcpOdometry", "wheel_increment"]
 
 
@@ -98,6 +102,8 @@ class Odometry(abc.ABC):
         self._prev_frame: Frame | None = None
         self._pose = np.eye(4)
         self._last_delta = np.eye(4)
+        self._last_dt = 0.0  # the interval (s) the last increment spans
+        self._intervals: deque[float] = deque(maxlen=21)  # the last scan intervals (s)
         self.steps: list[OdometryStep] = []
 
     @property
@@ -118,6 +124,8 @@ class Odometry(abc.ABC):
         rel = np.eye(4) if first else geo.relative(self._pose, pose)
         if not first:
             self._last_delta = rel
+            self._last_dt = float(frame.stamp - self._prev_frame.stamp)
+            self._intervals.append(self._last_dt)
         self._pose = pose
         self._prev_frame = frame
         step = OdometryStep(frame.stamp, frame.index, pose.copy(), pose @ geo.inverse(frame.base_T_sensor),
@@ -220,11 +228,27 @@ class IcpOdometry(Odometry):
         self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
         self._prev_wheel: tuple[Array, float] | None = None  # previous wheel increment and its interval (s)
 
+    def _constant_velocity(self, dt: float) -> Array:
+        """The last estimated increment, scaled to this scan interval of *dt* seconds across a gap in the log
+        (or just after one): the interval differs from the last one by ``_GAP_RATIO`` or more, and the
+        intervals before the last one are regular (positive, their 10–90 % spread within ``_REGULAR_SPREAD``
+        of their median: jittery logger stamps say little about the motion). A scan after a gap is a whole
+        gap's motion away, the scan after it one scan's again (docs/ODOMETRY.md has the measured case)."""
+        before = list(self._intervals)[:-1]
+        ratio = dt / self._last_dt if self._last_dt > 0.0 and dt > 0.0 else 1.0
+        if 1.0 / _GAP_RATIO < ratio < _GAP_RATIO or len(before) < 5:
+            return self._last_delta
+        lo, med, hi = np.percentile(np.asarray(before), [10, 50, 90])
+        if lo <= 0.0 or hi - lo > _REGULAR_SPREAD * med:
+            return self._last_delta
+        return geo.se3_exp(geo.se3_log(self._last_delta) * min(ratio, _MAX_INTERVAL_RATIO))
+
     def _alternative_start(self, frame: Frame, prediction: Array) -> Array | None:
-        """The constant-velocity increment when the wheel odometry is lumpy here, else None: the wheel
-        prediction disagrees by more than the configured bounds with the last estimated increment,
-        and it is stale (no motion) or differs as much from the previous wheel increment (scaled to
-        this scan interval).
+        """The constant-velocity increment (scaled to this scan interval) when the wheel odometry is
+        lumpy here, else None: the wheel prediction disagrees by more than the configured bounds with
+        it, and it is stale (no motion) or differs as much from the previous wheel increment (scaled to
+        this scan interval). Wheel odometry that lost a gap of the log (the wheel pose barely moved
+        while the scans did) is lumpy in this sense.
 
         The second test keeps smooth wheel odometry in charge: after an ICP slide along a corridor the
         last increment disagrees with the wheels too, and starting from it again fed the slide
@@ -235,14 +259,15 @@ class IcpOdometry(Odometry):
             return None
         dt = frame.stamp - self._prev_frame.stamp
         self._prev_wheel = (prediction, dt)
-        if not self._disagree(prediction, self._last_delta):
+        constant_velocity = self._constant_velocity(dt)
+        if not self._disagree(prediction, constant_velocity):
             return None
         stale = not self._disagree(prediction, np.eye(4))  # the wheels report (almost) no motion
         if not stale and prev_wheel is not None and prev_wheel[1] > 0 and dt > 0:
             expected = geo.se3_exp(geo.se3_log(prev_wheel[0]) * (dt / prev_wheel[1]))
             if not self._disagree(prediction, expected):
                 return None  # the wheels move as they did: they are not lumpy here
-        return self._last_delta
+        return constant_velocity
 
     def _place_unguided(self, pts: Array, guess: Array) -> Array:
         """Without wheel odometry (2D): the best pose of a correlative search of the configured window around

@@ -249,6 +249,42 @@ def test_steady_wheel_odometry_is_not_second_guessed():
     np.testing.assert_allclose(travelled, x - x[0], atol=0.03)
 
 
+def test_a_gap_in_the_log_that_the_wheels_lost_is_bridged_by_the_scaled_constant_velocity():
+    """Scans every 0.1 s at 1 m/s, then a 0.5 s gap in the log (UAL Almería has ten of them) across which
+    the wheel odometry advanced 2 cm instead of 0.5 m, as if it had stopped integrating. The constant-
+    velocity start scaled to the gap (0.5 m, not one scan's 0.1 m) lets ICP follow the scans there; the
+    wheel guess is 0.48 m off and the unscaled start 0.4 m, both beyond the deviation bound, which kept
+    the wheels' 2 cm. The scan after the gap is one interval away again: its start is scaled back."""
+    from evaluation import sim
+    from registration.config import IcpConfig, IcpOdometryConfig
+
+    world = sim.load_world("rooms")
+    spec = sim.LASER_PRESETS["sick_lms"]
+    ang = spec.angles()
+    stamps = np.r_[0.1 * np.arange(8), 0.7 + 0.5 + 0.1 * np.arange(4)]
+    x = 4.5 + stamps  # 1 m/s
+    wheel_x = np.where(stamps > 1.0, x - 0.48, x)  # the gap's motion lost but 2 cm
+    truth = np.column_stack([x, np.full(len(x), 3.0), np.zeros(len(x))])
+    iy, ix = world.cell_of(truth[:, :2])
+    assert world.free[iy, ix].all()
+    R = sim.cast_rays(world, truth, spec, rng=np.random.default_rng(5), range_noise=0.01)
+    frames = []
+    for k in range(len(x)):
+        ok = np.isfinite(R[k])
+        pts = np.column_stack([R[k][ok] * np.cos(ang[ok]), R[k][ok] * np.sin(ang[ok])])
+        frames.append(Frame(stamp=float(stamps[k]), points=pts, index=k, angles=ang, ranges=R[k],
+                            odom=geo.xytheta_to_matrix(wheel_x[k], 0.0, 0.0)))
+    icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
+    odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
+                                        max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
+                                        alternative_start_m=0.05, alternative_start_rad=0.05))
+    odo.run(frames)
+    travelled = odo.poses()[:, 0, 3]
+    np.testing.assert_allclose(travelled, x - x[0], atol=0.03)
+    # The first step (no earlier wheel increment) and the gap; not the steps after it.
+    assert odo.alternative_starts == 2
+
+
 def _straight_corridor(n: int, step: float, seed: int) -> list[Frame]:
     """A 180° laser (1 cm range noise, 8 m range) driving down the middle of an endless 2 m corridor at
     *step* m per scan, with exact wheel odometry: the walls say nothing about the forward motion."""
