@@ -65,19 +65,6 @@ class OdometryStageConfig(_Model):
     kiss_2d: KissOdometryConfig = Field(default_factory=lambda: PLANAR_KISS, description="KISS-ICP on planar scans")
     kiss_3d: KissOdometryConfig = Field(default_factory=lambda: SPATIAL_KISS, description="KISS-ICP on 3D clouds")
 
-    @model_validator(mode="before")
-    @classmethod
-    def _onto_pipeline_defaults(cls, data: object) -> object:
-        """A partial ``icp_2d`` (…) given as a mapping changes the pipeline's defaults above, not the
-        registration model's own: ``icp_2d: {icp: {gates_m: [0.5]}}`` keeps every other planar setting."""
-        if not isinstance(data, dict):
-            return data
-        data = dict(data)
-        for name, default in (("icp_2d", PLANAR_ICP), ("icp_3d", SPATIAL_ICP), ("kiss_2d", PLANAR_KISS),
-                              ("kiss_3d", SPATIAL_KISS)):
-            if isinstance(data.get(name), dict):
-                data[name] = _merged(default.model_dump(), data[name])
-        return data
     # Edge covariance: the Fisher information of the keyframe's scan against the previous keyframe's
     # at the odometry's relative pose (registration.covariance), with this residual σ and gate.
     edge_sigma_m: float = Field(0.02, gt=0, description="per-point residual σ of the keyframe-to-keyframe registration")
@@ -105,6 +92,21 @@ class OdometryStageConfig(_Model):
     wheel_gate_lumpy_only: bool = Field(True, description="... but only when the wheels were lumpy in the interval (the ICP odometry took its constant-velocity start); over smooth wheels the registration slid (a corridor), and the wheel edge stays")
     wheel_calibration: bool = Field(True, description="scale the wheel model per block (translation, rotation) online so that the wheel-vs-registration disagreement has its expected χ² mean (slam.noise_scale); the fitted scales are in summary.json (odometry_stats)")
     wheel_calibration_min_edges: int = Field(50, ge=1, description="wheel edges before the calibration starts (until then the model as configured)")
+
+
+    @model_validator(mode="before")
+    @classmethod
+    def _onto_pipeline_defaults(cls, data: object) -> object:
+        """A partial ``icp_2d`` (…) given as a mapping changes the pipeline's defaults above, not the
+        registration model's own: ``icp_2d: {icp: {gates_m: [0.5]}}`` keeps every other planar setting."""
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        for name, default in (("icp_2d", PLANAR_ICP), ("icp_3d", SPATIAL_ICP), ("kiss_2d", PLANAR_KISS),
+                              ("kiss_3d", SPATIAL_KISS)):
+            if isinstance(data.get(name), dict):
+                data[name] = _merged(default.model_dump(), data[name])
+        return data
 
 
 class BackendConfig(_Model):
