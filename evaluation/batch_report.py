@@ -135,7 +135,7 @@ def _figures(rows: Sequence[dict[str, Any]], value_names: Sequence[str], sweeps:
                 series.setdefault(r["log"] + (f" ({fixed})" if fixed else ""), []).append((float(r[name]), float(r[key])))
             if series:
                 figs.append((f"{label} against {name}", plots.lines_png(series, name, label, f"{label} against {name}"),
-                             f"One line per log (and per value of the other swept settings)."))
+                             "One line per log (and per value of the other swept settings)."))
     return figs
 
 

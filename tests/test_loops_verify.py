@@ -90,7 +90,6 @@ def test_best_elsewhere_is_the_brute_force_maximum_outside_the_excluded_neighbou
         for ox in range(-g.w, g.w + 1):
             for oy in range(-g.w, g.w + 1):
                 T = G.xytheta_to_matrix(g.x0 + ox * 0.1, g.y0 + oy * 0.1, th)
-                d = G.matrix_to_xytheta(G.inverse(best.transform) @ T)
                 dx, dy = T[0, 3] - best.transform[0, 3], T[1, 3] - best.transform[1, 3]
                 step = g.thetas[1] - g.thetas[0]
                 r_best = int(round((G.matrix_to_xytheta(best.transform)[2] - g.thetas[0]) / step))

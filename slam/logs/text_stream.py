@@ -104,22 +104,21 @@ def _prefetch(fh: IO[bytes], depth: int = 3) -> Iterator[bytes | BaseException]:
     q: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
 
-    def work() -> None:
-        for item in _plain_blocks(fh):
-            while not stop.is_set():
-                try:
-                    q.put(item, timeout=0.1)
-                    break
-                except queue.Full:
-                    continue
-            if stop.is_set():
-                return
+    def put(item: bytes | BaseException | None) -> bool:
+        """Queue *item*, waiting while the queue is full; False once the consumer has stopped."""
         while not stop.is_set():
             try:
-                q.put(None, timeout=0.1)
-                return
+                q.put(item, timeout=0.1)
+                return True
             except queue.Full:
                 continue
+        return False
+
+    def work() -> None:
+        for item in _plain_blocks(fh):
+            if not put(item):
+                return
+        put(None)
 
     th = threading.Thread(target=work, name="carmen-decompress", daemon=True)
     th.start()
