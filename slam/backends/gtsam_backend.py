@@ -292,6 +292,7 @@ class IncrementalSmoother:
         self._known: set[int] = set()
         self._anchor_first = anchor_first
         self._estimate = None
+        self._updated = False
 
     @property
     def node_ids(self) -> list[int]:
@@ -339,19 +340,32 @@ class IncrementalSmoother:
             self._isam.update()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self._estimate = self._isam.calculateEstimate()
+        self._updated = True
+        self._estimate = None  # computed when asked: most keyframes read only the newest pose
+
+    def _full_estimate(self):  # type: ignore[no-untyped-def]
+        if not self._updated:
+            raise GraphError("no estimate yet: call update() first")
+        if self._estimate is None:
+            self._estimate = self._isam.calculateEstimate()
+        return self._estimate
 
     def estimate(self) -> tuple[list[int], Array]:
         """(node ids, ``(N, 4, 4)`` poses) of the current estimate (call :meth:`update` first)."""
-        if self._estimate is None:
-            raise GraphError("no estimate yet: call update() first")
-        ids = [k for k in self._ids if self._estimate.exists(k)]
-        return ids, from_values(self._estimate, len(ids), self.dim, ids)
+        values = self._full_estimate()
+        ids = self._ids[: values.size()]  # nodes added since the last update() are the newest ones
+        return ids, from_values(values, len(ids), self.dim, ids)
 
     def pose(self, node_id: int) -> Array:
-        if self._estimate is None or not self._estimate.exists(int(node_id)):
+        """One node's current estimate: iSAM2's linearisation point retracted by that node's delta alone,
+        the same value :meth:`estimate` gives it, without retracting every node (O(1) instead of O(N))."""
+        key = int(node_id)
+        if not self._updated or not self._isam.valueExists(key):
             raise GraphError(f"node {node_id} has no estimate yet")
-        return from_values(self._estimate, 1, self.dim, [int(node_id)])[0]
+        if self.dim == 2:
+            p = self._isam.calculateEstimatePose2(key)
+            return geo.xytheta_to_matrix(np.array([[p.x(), p.y(), p.theta()]]))[0]
+        return np.asarray(self._isam.calculateEstimatePose3(key).matrix(), dtype=float)
 
     def marginal_covariance(self, node_id: int) -> Array:
         """Marginal covariance of node *node_id* in its own frame (right perturbation), translation first."""
