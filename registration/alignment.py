@@ -23,13 +23,16 @@ from .voxel import voxel_downsample
 
 Array = NDArray[np.float64]
 
-__all__ = ["COMPILED_2D", "ROBUST_CODES", "IcpResult", "as_target", "evaluate_alignment", "evaluate_matches",
+__all__ = ["COMPILED_2D", "COMPILED_3D", "ROBUST_CODES", "IcpResult", "as_target", "evaluate_alignment", "evaluate_matches",
            "prepare", "robust_weights"]
 
 #: 2D alignments (without a prior) run the compiled iterations of registration.kernels_icp; the numpy loops of
 #: registration.icp and registration.point_to_plane are the same algorithms, kept for 3D, for priors and as
 #: the reference the tests compare with.
 COMPILED_2D = True
+#: 3D point-to-plane alignments (without a prior) run the compiled iterations of registration.kernels_icp3d on a
+#: hashed voxel grid of the target instead of the numpy loop on its k-d tree (same algorithm, kept as the reference)
+COMPILED_3D = True
 #: IcpConfig.robust → the compiled loop's code (trimming needs a partial sort: numpy loop)
 ROBUST_CODES = {"none": 0, "huber": 1, "cauchy": 2}
 

@@ -57,6 +57,8 @@ def icp_point_to_plane(source: ArrayLike, target: ArrayLike | IcpTarget, init: A
     d = tgt.dim
     if d == 2 and prior is None and alignment.COMPILED_2D and config.robust in alignment.ROBUST_CODES:
         return _icp_plane_2d_compiled(S, tgt, T, config)
+    if d == 3 and prior is None and alignment.COMPILED_3D and config.robust in alignment.ROBUST_CODES:
+        return _icp_plane_3d_compiled(S, tgt, T, config)
     n_tgt = len(tgt.points)
     matcher = IncrementalMatcher(tgt.tree, config.workers, incremental=len(S) >= INCREMENTAL_MIN_POINTS)
     robust = config.robust != "none"
@@ -129,6 +131,28 @@ def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
     moved = S @ R.T + t
     gate = config.gates_m[-1]
     return evaluate_matches(S, tgt, T, moved, gated_nearest(tgt, moved, gate), gate, config, it, converged)
+
+
+def _icp_plane_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
+    """The 3D iterations above, compiled (:func:`registration.kernels_icp3d.plane_icp_3d`: the same nearest
+    neighbours and PCA normals on a hashed voxel grid instead of the k-d tree), then the same evaluation."""
+    from . import kernels_icp3d
+
+    g = tgt.grid3
+    R, t, it, converged, status, stage, pairs, idx = kernels_icp3d.plane_icp_3d(
+        np.ascontiguousarray(S), T[:3, :3].copy(), T[:3, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
+        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
+        config.robust_scale_m, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
+        g.points, *g.args())
+    if status == 1:
+        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: {pairs} pairs within "
+                                   f"{config.gates_m[stage]} m (need {config.min_inliers})")
+    if status == 2:
+        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    moved = S @ R.T + t
+    return evaluate_matches(S, tgt, T, moved, idx, config.gates_m[-1], config, it, converged)
 
 
 def _add_prior(H: Array, g: Array, prior: PosePrior, R: Array, t: Array, d: int) -> tuple[Array, Array]:

@@ -77,6 +77,7 @@ class IcpTarget:
         self.dim = self.points.shape[1]
         self._tree: cKDTree | None = None
         self._grid = None
+        self._grid3 = None
         self.normal_neighbors = normal_neighbors
         self.workers = workers
         # Normals are computed on demand, point by point, and kept: an alignment needs them only at
@@ -101,6 +102,15 @@ class IcpTarget:
 
             self._grid = PointGrid(self.points)
         return self._grid
+
+    @property
+    def grid3(self):
+        """3D only: the hashed voxel-grid index of the compiled kernels (:class:`registration.kernels_icp3d.VoxelGrid3D`)."""
+        if self._grid3 is None:
+            from .kernels_icp3d import VoxelGrid3D
+
+            self._grid3 = VoxelGrid3D(self.points)
+        return self._grid3
 
     def normals(self, index: NDArray[np.intp] | None = None) -> Array:
         """Unit PCA normals (smallest-eigenvalue eigenvector of the k-neighbour scatter) of the

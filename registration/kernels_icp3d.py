@@ -1,0 +1,555 @@
+"""Compiled (numba) 3D point-to-plane ICP (Chen & Medioni 1992) on a hashed voxel grid of the target: the loop
+form of ``registration.point_to_plane.icp_point_to_plane`` in 3D, which stays as its reference (tests check
+that both agree), and of the searches it uses — exact k-nearest neighbours, the cached gated nearest neighbour
+of :mod:`registration.matching` and the PCA normals of :func:`registration.target.estimate_normals`.
+
+They exist because a LiDAR scan-to-map step (~20k source points against a ~300k-point local map, 30–100
+iterations) spent most of its time in per-call numpy/scipy work: building a k-d tree of the map for every
+scan, k-neighbour queries and a batched ``eigh`` for the normals, and a dozen array passes per iteration.
+
+Grid: points bucketed into cubic cells of side ``cell`` (m) by a counting sort over an open-addressing hash
+of the occupied cells (a dense 3D array of a 200 m × 200 m map at 0.3 m would hold ~10⁷ cells, nearly all
+empty). A search visits cubic shells of cells around the query's cell; after shell r every unvisited point
+is at least the distance from the query to the faces of the visited block away, which ends the search
+exactly (the 2D grid of :mod:`registration.kernels` does the same with square rings).
+
+Frames: every argument is in one frame (the target's); metres and radians.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+__all__ = ["VoxelGrid3D", "knn3", "normals_3d", "plane_icp_3d", "voxel_first_3d"]
+
+#: hash multiplier (Fibonacci hashing, Knuth TAOCP vol. 3 §6.4)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+#: neighbours cached per source point by the matcher (registration.matching._CACHED), and the search bound as a
+#: multiple of the gate (registration.matching._BOUND_FACTOR), and the certificate margin (matching._TAU)
+_CACHED, _BOUND_FACTOR, _TAU = 8, 2.0, 1e-9
+
+
+class VoxelGrid3D:
+    """Hashed uniform-grid index of 3D points ``(N, 3)`` (m), cells of side *cell* (m). The points are kept
+    reordered cell by cell (``cell_points``, and ``order``: their indices in *points*) so that a search reads
+    each cell's points from one contiguous block; the hash table (``table``: key, first, end per slot) holds
+    about twice as many slots as occupied cells."""
+
+    def __init__(self, points: Array, cell: float = 1.0) -> None:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise ValueError(f"VoxelGrid3D needs (N, 3) points, got shape {pts.shape}")
+        self.points = pts
+        self.cell = float(cell)
+        self.origin = pts.min(axis=0)
+        self.dims = (np.floor((pts.max(axis=0) - self.origin) / self.cell).astype(np.int64) + 1)
+        self.bits, self.table, self.order, self.cell_points = _bucket3(pts, self.origin, self.cell)
+
+    def args(self) -> tuple:
+        """The grid as the positional arguments every kernel takes after the points."""
+        return (self.cell_points, self.origin, self.cell, self.dims, self.bits, self.table, self.order)
+
+
+@njit(cache=True, inline="always")
+def _cell_key(i, j, k):  # pragma: no cover - compiled
+    """One int64 per cell (21 bits per axis, offset so that cells a little outside the box stay distinct)."""
+    return ((i + 1048576) << 42) | ((j + 1048576) << 21) | (k + 1048576)
+
+
+@njit(cache=True, inline="always")
+def _slot(key, table, bits):  # pragma: no cover - compiled
+    """Hash slot of *key*: its own, or the empty one (key −1) where it would go."""
+    mask = (1 << bits) - 1
+    h = np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(64 - bits))
+    while table[h, 0] != -1 and table[h, 0] != key:
+        h = (h + 1) & mask
+    return h
+
+
+@njit(cache=True)
+def _bucket3(pts, origin, cell):  # pragma: no cover - compiled
+    n = pts.shape[0]
+    cell_key = np.empty(n, np.int64)
+    # distinct cells first (a table of 2n slots), then the compact table of ~2 slots per occupied cell
+    bits = 4
+    while (1 << bits) < 2 * n:
+        bits += 1
+    big = np.full((1 << bits, 1), -1, np.int64)
+    occupied = 0
+    for p in range(n):
+        i = int(math.floor((pts[p, 0] - origin[0]) / cell))
+        j = int(math.floor((pts[p, 1] - origin[1]) / cell))
+        k = int(math.floor((pts[p, 2] - origin[2]) / cell))
+        key = _cell_key(i, j, k)
+        cell_key[p] = key
+        h = _slot(key, big, bits)
+        if big[h, 0] == -1:
+            big[h, 0] = key
+            occupied += 1
+    bits = 4
+    while (1 << bits) < 2 * occupied:
+        bits += 1
+    size = 1 << bits
+    table = np.full((size, 3), -1, np.int64)  # key, first, end (indices into order / cell_points)
+    slot_of = np.empty(n, np.int64)
+    counts = np.zeros(size + 1, np.int64)
+    for p in range(n):
+        h = _slot(cell_key[p], table, bits)
+        table[h, 0] = cell_key[p]
+        slot_of[p] = h
+        counts[h + 1] += 1
+    for s in range(size):
+        counts[s + 1] += counts[s]
+    for s in range(size):
+        table[s, 1] = counts[s]
+        table[s, 2] = counts[s + 1]
+    fill = counts[:-1].copy()
+    order = np.empty(n, np.int64)
+    for p in range(n):  # ascending point index within a cell
+        order[fill[slot_of[p]]] = p
+        fill[slot_of[p]] += 1
+    cell_points = np.empty((n, 3))
+    for q in range(n):
+        o = order[q]
+        cell_points[q, 0], cell_points[q, 1], cell_points[q, 2] = pts[o, 0], pts[o, 1], pts[o, 2]
+    return bits, table, order, cell_points
+
+
+#: margin (m) on the geometric cell bounds of the searches: a point's cell is floor((p − origin) / cell) in floating
+#: point, so its box is known to ~1e-14 m; distances within this of a bound are treated as inside it
+_MARGIN = 1e-9
+
+
+@njit(cache=True, inline="always")
+def _reach(x, lo, r, cell):  # pragma: no cover - compiled
+    """Distance from coordinate *x* to the faces of shells 0 … r about its cell (lower corner *lo* of that cell)."""
+    a = lo - r * cell
+    return min(x - a, a + (2 * r + 1) * cell - x)
+
+
+@njit(cache=True, inline="always")
+def _gap(x, lo, d, cell):  # pragma: no cover - compiled
+    """Distance from coordinate *x* to the interval of the cell *d* steps from its own (lower corner *lo*)."""
+    if d > 0:
+        return max(lo + d * cell - x - _MARGIN, 0.0)
+    if d < 0:
+        return max(x - (lo + (d + 1) * cell) - _MARGIN, 0.0)
+    return 0.0
+
+
+@njit(cache=True, inline="always")
+def knn3(x, y, z, pts, cpts, origin, cell, dims, bits, table, order, k, bound, bd, bi, max_r=1 << 30):  # pragma: no cover - compiled
+    """The *k* grid points nearest to (x, y, z) strictly closer than *bound* (``inf``: unbounded), nearest first:
+    squared distances in ``bd[:k]`` and indices in ``bi[:k]`` (``inf`` / −1 past the last found). Exact: a cell
+    is skipped when its box is farther than the k-th point found so far (or than *bound*), and the search stops
+    once every unvisited cell is. Returns False when it stopped at shell *max_r* before that."""
+    ci = int(math.floor((x - origin[0]) / cell))
+    cj = int(math.floor((y - origin[1]) / cell))
+    ck = int(math.floor((z - origin[2]) / cell))
+    lox, loy, loz = origin[0] + ci * cell, origin[1] + cj * cell, origin[2] + ck * cell
+    for s in range(k):
+        bd[s] = np.inf
+        bi[s] = -1
+    b2 = bound * bound
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    r = 0
+    while True:
+        for di in range(-r, r + 1):
+            ei = di == -r or di == r
+            if ci + di < 0 or ci + di >= nx:
+                continue
+            gx = _gap(x, lox, di, cell)
+            gx2 = gx * gx
+            for dj in range(-r, r + 1):
+                ej = ei or dj == -r or dj == r
+                if cj + dj < 0 or cj + dj >= ny:
+                    continue
+                gy = _gap(y, loy, dj, cell)
+                gxy2 = gx2 + gy * gy
+                if gxy2 >= bd[k - 1] or gxy2 >= b2:
+                    continue
+                dk = -r
+                while dk <= r:
+                    step = 1 if ej else 2 * r
+                    if ck + dk < 0 or ck + dk >= nz:
+                        dk += step
+                        continue
+                    gz = _gap(z, loz, dk, cell)
+                    g2 = gxy2 + gz * gz
+                    if g2 >= bd[k - 1] or g2 >= b2:
+                        dk += step
+                        continue
+                    h = _slot(_cell_key(ci + di, cj + dj, ck + dk), table, bits)
+                    if table[h, 0] != -1:
+                        for q in range(table[h, 1], table[h, 2]):
+                            ux = cpts[q, 0] - x
+                            uy = cpts[q, 1] - y
+                            uz = cpts[q, 2] - z
+                            d2 = ux * ux + uy * uy + uz * uz
+                            if d2 < bd[k - 1] and d2 < b2:  # insert into the sorted k best
+                                s = k - 1
+                                while s > 0 and bd[s - 1] > d2:
+                                    bd[s] = bd[s - 1]
+                                    bi[s] = bi[s - 1]
+                                    s -= 1
+                                bd[s] = d2
+                                bi[s] = order[q]
+                    dk += step
+        reach = min(_reach(x, lox, r, cell), _reach(y, loy, r, cell), _reach(z, loz, r, cell)) - _MARGIN
+        if reach >= bound or (bi[k - 1] >= 0 and bd[k - 1] <= reach * reach):
+            break
+        if ci - r <= 0 and ci + r >= nx - 1 and cj - r <= 0 and cj + r >= ny - 1 and ck - r <= 0 and ck + r >= nz - 1:
+            break  # every cell of the grid visited
+        if r >= max_r:
+            return False
+        r += 1
+    return True
+
+
+@njit(cache=True, inline="always")
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):  # pragma: no cover - compiled
+    """Unit eigenvector of the smallest eigenvalue of the symmetric 3×3 matrix, by cyclic Jacobi rotations
+    (Golub & Van Loan §8.5) to machine precision."""
+    A = np.empty((3, 3))
+    A[0, 0], A[0, 1], A[0, 2] = a00, a01, a02
+    A[1, 0], A[1, 1], A[1, 2] = a01, a11, a12
+    A[2, 0], A[2, 1], A[2, 2] = a02, a12, a22
+    V = np.eye(3)
+    for _sweep in range(50):
+        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
+        diag = A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2]
+        if off <= 1e-36 * diag or off == 0.0:
+            break
+        for p in range(2):
+            for q in range(p + 1, 3):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for m in range(3):  # A ← Jᵀ A J
+                    amp, amq = A[m, p], A[m, q]
+                    A[m, p] = c * amp - s * amq
+                    A[m, q] = s * amp + c * amq
+                for m in range(3):
+                    apm, aqm = A[p, m], A[q, m]
+                    A[p, m] = c * apm - s * aqm
+                    A[q, m] = s * apm + c * aqm
+                for m in range(3):  # V ← V J
+                    vmp, vmq = V[m, p], V[m, q]
+                    V[m, p] = c * vmp - s * vmq
+                    V[m, q] = s * vmp + c * vmq
+    j = 0
+    if A[1, 1] < A[j, j]:
+        j = 1
+    if A[2, 2] < A[j, j]:
+        j = 2
+    nv = math.sqrt(V[0, j] * V[0, j] + V[1, j] * V[1, j] + V[2, j] * V[2, j])
+    return V[0, j] / nv, V[1, j] / nv, V[2, j] / nv
+
+
+@njit(cache=True, inline="always")
+def _normal_at(p, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bd, bi):  # pragma: no cover - compiled
+    """PCA normal of grid point *p* from its *k* nearest grid points (itself included), as estimate_normals."""
+    knn3(pts[p, 0], pts[p, 1], pts[p, 2], pts, cpts, origin, cell, dims, bits, table, order, k, np.inf, bd, bi)
+    mx = my = mz = 0.0
+    for s in range(k):
+        o = bi[s]
+        mx += pts[o, 0]
+        my += pts[o, 1]
+        mz += pts[o, 2]
+    mx /= k
+    my /= k
+    mz /= k
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for s in range(k):
+        o = bi[s]
+        ux, uy, uz = pts[o, 0] - mx, pts[o, 1] - my, pts[o, 2] - mz
+        a00 += ux * ux
+        a01 += ux * uy
+        a02 += ux * uz
+        a11 += uy * uy
+        a12 += uy * uz
+        a22 += uz * uz
+    normals[p, 0], normals[p, 1], normals[p, 2] = _smallest_eigenvector(a00, a01, a02, a11, a12, a22)
+
+
+@njit(cache=True)
+def normals_3d(index, normals, have, pts, cpts, origin, cell, dims, bits, table, order, k):  # pragma: no cover - compiled
+    """Fill ``normals[p]`` for each p in *index* not yet *have* (k-neighbour PCA, k ≤ number of points)."""
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
+    for m in range(index.shape[0]):
+        p = index[m]
+        if not have[p]:
+            _normal_at(p, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bd, bi)
+            have[p] = True
+
+
+@njit(cache=True, inline="always")
+def _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits, table, order,
+            bd, bi):  # pragma: no cover - compiled
+    """Search source point *p* at (mx, my, mz) afresh: cache its K nearest within the bound (matching._search),
+    their indices in *cand* and their coordinates in *cand_xyz* (read in sequence by the checks that follow)."""
+    kc = cand.shape[1]
+    bound = _BOUND_FACTOR * gate
+    knn3(mx, my, mz, pts, cpts, origin, cell, dims, bits, table, order, kc, bound, bd, bi)
+    n_tgt = pts.shape[0]
+    at[p, 0], at[p, 1], at[p, 2] = mx, my, mz
+    d1[p] = math.sqrt(bd[0])
+    radius[p] = min(math.sqrt(bd[kc - 1]), bound)
+    for s in range(kc):
+        j = bi[s]
+        cand[p, s] = j if j >= 0 else n_tgt
+        if j >= 0:
+            cand_xyz[p, s, 0], cand_xyz[p, s, 1], cand_xyz[p, s, 2] = pts[j, 0], pts[j, 1], pts[j, 2]
+
+
+@njit(cache=True)
+def _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits, table,
+           order, bd, bi):  # pragma: no cover - compiled
+    """Index of the target point nearest to (mx, my, mz) strictly within *gate*, else len(pts): from the cached
+    candidates while the motion since the last search keeps them certain (registration.matching), else after a
+    fresh search."""
+    n_tgt = pts.shape[0]
+    if not fresh:
+        ex, ey, ez = mx - at[p, 0], my - at[p, 1], mz - at[p, 2]
+        eps = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if min(gate, d1[p] + eps) + eps < radius[p] - _TAU:
+            best = np.inf
+            b = n_tgt
+            for c in range(cand.shape[1]):
+                j = cand[p, c]
+                if j >= n_tgt:
+                    break
+                ux, uy, uz = mx - cand_xyz[p, c, 0], my - cand_xyz[p, c, 1], mz - cand_xyz[p, c, 2]
+                dist = math.sqrt(ux * ux + uy * uy + uz * uz)
+                if dist < best:
+                    best = dist
+                    b = j
+            return b if best < gate else n_tgt
+    _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits, table, order,
+            bd, bi)
+    return cand[p, 0] if d1[p] < gate else n_tgt
+
+
+@njit(cache=True)
+def _solve(A, b):  # pragma: no cover - compiled
+    """Gaussian elimination with partial pivoting of an n×n system; NaNs when a pivot is exactly 0."""
+    n = b.shape[0]
+    M = np.empty((n, n + 1))
+    M[:, :n] = A
+    M[:, n] = b
+    for c in range(n):
+        piv = c
+        for r in range(c + 1, n):
+            if abs(M[r, c]) > abs(M[piv, c]):
+                piv = r
+        if M[piv, c] == 0.0:
+            return np.full(n, np.nan)
+        if piv != c:
+            for q in range(n + 1):
+                M[c, q], M[piv, q] = M[piv, q], M[c, q]
+        for r in range(c + 1, n):
+            f = M[r, c] / M[c, c]
+            for q in range(c, n + 1):
+                M[r, q] -= f * M[c, q]
+    x = np.empty(n)
+    for c in range(n - 1, -1, -1):
+        s = M[c, n]
+        for q in range(c + 1, n):
+            s -= M[c, q] * x[q]
+        x[c] = s / M[c, c]
+    return x
+
+
+@njit(cache=True)
+def _apply_se3_left(xi, R, t):  # pragma: no cover - compiled
+    """``Exp(ξ) · (R, t)`` for ξ = (ρ, φ), as core.geometry.se3_exp (Rodrigues; left Jacobian for ρ)."""
+    wx, wy, wz = xi[3], xi[4], xi[5]
+    th2 = wx * wx + wy * wy + wz * wz
+    th = math.sqrt(th2)
+    if th < 1e-8:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    if th < 1e-6:
+        ja, jb = 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
+    else:
+        ja, jb = (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    K = np.zeros((3, 3))
+    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -wz, wy, wz, -wx, -wy, wx
+    K2 = K @ K
+    E = np.eye(3) + a * K + b * K2
+    J = np.eye(3) + ja * K + jb * K2
+    et = J @ xi[:3]
+    return E @ R, E @ t + et
+
+
+@njit(cache=True)
+def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, min_inliers,
+                 normals, have, k, pts, cpts, origin, cell, dims, bits, table, order):  # pragma: no cover - compiled
+    """Point-to-plane ICP iterations of ``registration.point_to_plane.icp_point_to_plane`` in 3D (left
+    increment, Jacobian rows [nᵀ, (m × n)ᵀ], Low 2004), source ``S (N, 3)`` from ``(R, t)``; *robust* 0 = none,
+    1 = Huber, 2 = Cauchy on |e| with *scale*. Normals of the matched target points are filled into *normals*
+    / *have* on demand. Returns (R, t, iterations, converged, status, stage, pairs, matches): status 0 = done,
+    *matches* the nearest target point strictly within the last gate of each source point at the final pose
+    (len(pts): none); 1 = fewer than *min_inliers* pairs (*pairs*) within ``gates[stage]`` at iteration
+    *iterations*; 2 = singular normal equations."""
+    n = S.shape[0]
+    n_tgt = pts.shape[0]
+    kc = max(2, min(_CACHED, n_tgt))
+    R = R.copy()
+    t = t.copy()
+    idx = np.empty(n, np.int64)
+    at = np.empty((n, 3))
+    d1 = np.empty(n)
+    radius = np.empty(n)
+    cand = np.empty((n, kc), np.int64)
+    cand_xyz = np.empty((n, kc, 3))
+    bd = np.empty(kc)
+    bi = np.empty(kc, np.int64)
+    bdk = np.empty(k)
+    bik = np.empty(k, np.int64)
+    moved = np.empty((n, 3))
+    # each source point's current match, its coordinates and normal, read in sequence while the match holds
+    pair = np.full(n, -1, np.int64)
+    pair_xyz = np.empty((n, 3))
+    pair_n = np.empty((n, 3))
+    fresh = True
+    it = 0
+    converged = False
+    for stage in range(gates.shape[0]):
+        gate = gates[stage]
+        converged = False
+        while it < max_iterations:
+            it += 1
+            n_ok = 0
+            for p in range(n):
+                mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
+                my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
+                mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
+                moved[p, 0], moved[p, 1], moved[p, 2] = mx, my, mz
+                q = -1
+                if not fresh:  # the check of _match, inline: a call passes ~20 reference-counted arrays
+                    ex, ey, ez = mx - at[p, 0], my - at[p, 1], mz - at[p, 2]
+                    eps = math.sqrt(ex * ex + ey * ey + ez * ez)
+                    if min(gate, d1[p] + eps) + eps < radius[p] - _TAU:
+                        best = np.inf
+                        q = n_tgt
+                        for c in range(kc):
+                            j = cand[p, c]
+                            if j >= n_tgt:
+                                break
+                            ux, uy, uz = mx - cand_xyz[p, c, 0], my - cand_xyz[p, c, 1], mz - cand_xyz[p, c, 2]
+                            dist = math.sqrt(ux * ux + uy * uy + uz * uz)
+                            if dist < best:
+                                best = dist
+                                q = j
+                        if best >= gate:
+                            q = n_tgt
+                if q < 0:
+                    q = _match(p, mx, my, mz, gate, True, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell,
+                               dims, bits, table, order, bd, bi)
+                idx[p] = q
+                if q < n_tgt:
+                    n_ok += 1
+            fresh = False
+            if n_ok < min_inliers:
+                return R, t, it, False, 1, stage, n_ok, idx
+            H = np.zeros((6, 6))
+            g = np.zeros(6)
+            J = np.empty(6)
+            for p in range(n):
+                q = idx[p]
+                if q >= n_tgt:
+                    continue
+                if q != pair[p]:
+                    if not have[q]:
+                        _normal_at(q, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bdk, bik)
+                        have[q] = True
+                    pair[p] = q
+                    for a in range(3):
+                        pair_xyz[p, a] = pts[q, a]
+                        pair_n[p, a] = normals[q, a]
+                mx, my, mz = moved[p, 0], moved[p, 1], moved[p, 2]
+                nx_, ny_, nz_ = pair_n[p, 0], pair_n[p, 1], pair_n[p, 2]
+                e = (mx - pair_xyz[p, 0]) * nx_ + (my - pair_xyz[p, 1]) * ny_ + (mz - pair_xyz[p, 2]) * nz_
+                w = 1.0
+                if robust == 1:
+                    w = min(1.0, scale / max(abs(e), 1e-300))
+                elif robust == 2:
+                    w = 1.0 / (1.0 + (abs(e) / scale) ** 2)
+                J[0], J[1], J[2] = nx_, ny_, nz_
+                J[3] = my * nz_ - mz * ny_
+                J[4] = mz * nx_ - mx * nz_
+                J[5] = mx * ny_ - my * nx_
+                for a in range(6):
+                    wa = J[a] * w
+                    for b in range(a, 6):
+                        H[a, b] += J[b] * wa
+                    g[a] += wa * e
+            for a in range(6):
+                for b in range(a):
+                    H[a, b] = H[b, a]
+            xi = _solve(H, -g)
+            if xi[0] != xi[0]:  # NaN: singular
+                return R, t, it, False, 2, stage, n_ok, idx
+            R, t = _apply_se3_left(xi, R, t)
+            if (math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2]) < tol_t
+                    and math.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5]) < tol_r):
+                converged = True
+                break
+    # The matches at the final pose and the last gate (the evaluation's), with their normals.
+    gate = gates[gates.shape[0] - 1]
+    for p in range(n):
+        mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
+        my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
+        mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
+        q = _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits,
+                   table, order, bd, bi)
+        idx[p] = q
+        if q < n_tgt and not have[q]:
+            _normal_at(q, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bdk, bik)
+            have[q] = True
+    return R, t, it, converged, 0, gates.shape[0] - 1, n, idx
+
+
+@njit(cache=True)
+def voxel_first_3d(pts, size):  # pragma: no cover - compiled
+    """Indices of the first point of each voxel of edge *size* (``floor(p / size)``), in input order: the rows
+    ``registration.voxel.voxel_downsample(points, size, "first")`` keeps."""
+    n = pts.shape[0]
+    bits = 4
+    while (1 << bits) < 2 * n:
+        bits += 1
+    size_t = 1 << bits
+    mask = size_t - 1
+    kx = np.empty(size_t, np.int64)
+    ky = np.empty(size_t, np.int64)
+    kz = np.empty(size_t, np.int64)
+    used = np.zeros(size_t, np.bool_)
+    keep = np.empty(n, np.int64)
+    m = 0
+    for p in range(n):
+        i = np.int64(math.floor(pts[p, 0] / size))
+        j = np.int64(math.floor(pts[p, 1] / size))
+        k = np.int64(math.floor(pts[p, 2] / size))
+        hk = np.uint64(i * 73856093) ^ np.uint64(j * 19349663) ^ np.uint64(k * 83492791)
+        h = np.int64((hk * _GOLDEN) >> np.uint64(64 - bits))
+        while used[h] and not (kx[h] == i and ky[h] == j and kz[h] == k):
+            h = (h + 1) & mask
+        if not used[h]:
+            used[h] = True
+            kx[h], ky[h], kz[h] = i, j, k
+            keep[m] = p
+            m += 1
+    return keep[:m]
