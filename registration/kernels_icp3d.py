@@ -525,31 +525,34 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
 
 @njit(cache=True)
 def voxel_first_3d(pts, size):  # pragma: no cover - compiled
-    """Indices of the first point of each voxel of edge *size* (``floor(p / size)``), in input order: the rows
-    ``registration.voxel.voxel_downsample(points, size, "first")`` keeps."""
+    """Indices of the first point of each voxel of edge *size* (``floor(p / size)``), in input order — the rows
+    ``registration.voxel.voxel_downsample(points, size, "first")`` keeps — and the voxel index range
+    ``(lo, hi)`` per axis (voxel_keys refuses spans it cannot pack)."""
     n = pts.shape[0]
     bits = 4
     while (1 << bits) < 2 * n:
         bits += 1
-    size_t = 1 << bits
-    mask = size_t - 1
-    kx = np.empty(size_t, np.int64)
-    ky = np.empty(size_t, np.int64)
-    kz = np.empty(size_t, np.int64)
-    used = np.zeros(size_t, np.bool_)
+    mask = (1 << bits) - 1
+    slots = np.full((1 << bits, 3), np.iinfo(np.int64).min, np.int64)  # the voxel (i, j, k) of each used slot
     keep = np.empty(n, np.int64)
+    lo = np.full(3, np.iinfo(np.int64).max, np.int64)
+    hi = np.full(3, np.iinfo(np.int64).min, np.int64)
     m = 0
     for p in range(n):
         i = np.int64(math.floor(pts[p, 0] / size))
         j = np.int64(math.floor(pts[p, 1] / size))
         k = np.int64(math.floor(pts[p, 2] / size))
+        lo[0], lo[1], lo[2] = min(lo[0], i), min(lo[1], j), min(lo[2], k)
+        hi[0], hi[1], hi[2] = max(hi[0], i), max(hi[1], j), max(hi[2], k)
         hk = np.uint64(i * 73856093) ^ np.uint64(j * 19349663) ^ np.uint64(k * 83492791)
         h = np.int64((hk * _GOLDEN) >> np.uint64(64 - bits))
-        while used[h] and not (kx[h] == i and ky[h] == j and kz[h] == k):
+        while True:
+            if slots[h, 0] == np.iinfo(np.int64).min:
+                slots[h, 0], slots[h, 1], slots[h, 2] = i, j, k
+                keep[m] = p
+                m += 1
+                break
+            if slots[h, 0] == i and slots[h, 1] == j and slots[h, 2] == k:
+                break
             h = (h + 1) & mask
-        if not used[h]:
-            used[h] = True
-            kx[h], ky[h], kz[h] = i, j, k
-            keep[m] = p
-            m += 1
-    return keep[:m]
+    return keep[:m], lo, hi

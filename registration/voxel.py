@@ -17,6 +17,22 @@ Array = NDArray[np.float64]
 
 __all__ = ["voxel_keys", "voxel_downsample", "voxel_downsample_stream"]
 
+#: 3D clouds of at least this many points (a LiDAR scan) are subsampled by the compiled hash of
+#: registration.kernels_icp3d.voxel_first_3d — the same rows, without the sort; below it numpy's sort is as quick.
+_COMPILED_MIN_POINTS = 20000
+
+
+def _first_3d(P: Array, size: float) -> Array:
+    """``voxel_downsample(P, size, "first")`` of a 3D cloud by one compiled pass over a hash of the voxels."""
+    from .kernels_icp3d import voxel_first_3d
+
+    if size <= 0 or not np.isfinite(size):
+        raise GeometryError(f"voxel size must be positive and finite, got {size}")
+    keep, lo, hi = voxel_first_3d(np.ascontiguousarray(P), size)
+    if np.prod((hi - lo + 1).astype(np.float64)) >= 2.0**62:
+        raise GeometryError(f"point extent too large for voxel size {size} m")
+    return P[keep]
+
 
 def voxel_keys(points: Array, size: float) -> NDArray[np.int64]:
     """One int64 key per point identifying its voxel of edge *size* (m)."""
@@ -43,6 +59,8 @@ def voxel_downsample(points: ArrayLike, size: float | None, mode: Literal["first
         raise GeometryError(f"points must be (N, 2) or (N, 3), got shape {P.shape}")
     if not size or len(P) == 0:
         return P
+    if mode == "first" and P.shape[1] == 3 and len(P) >= _COMPILED_MIN_POINTS:
+        return _first_3d(P, float(size))
     key = voxel_keys(P, float(size))
     if mode == "first":
         _, first = np.unique(key, return_index=True)

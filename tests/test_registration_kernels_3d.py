@@ -113,3 +113,19 @@ def test_both_3d_loops_refuse_too_few_pairs_and_a_singular_system(monkeypatch, c
     plane = np.column_stack([rng.uniform(-5, 5, (500, 2)), np.zeros(500)])  # slides in x, y and turns about z
     with pytest.raises(DegenerateInputError, match="singular normal equations"):
         icp_point_to_plane(plane, plane, None, IcpConfig(gates_m=(0.5,)))
+
+
+@pytest.mark.parametrize("size", [0.05, 0.3, 1.0])
+def test_compiled_voxel_subsampling_keeps_the_same_rows(monkeypatch, size):
+    """A LiDAR-sized cloud (≥ 20000 points) goes through the compiled hash: the same first point per voxel,
+    in the same order, as the sort of packed keys; negative coordinates and points on voxel faces included."""
+    from registration import voxel
+
+    rng = np.random.default_rng(11)
+    P = np.vstack([_scene(rng, 30000), np.round(rng.uniform(-3, 3, (2000, 3)) / size) * size])
+    fast = voxel.voxel_downsample(P, size)
+    monkeypatch.setattr(voxel, "_COMPILED_MIN_POINTS", 10**12)
+    np.testing.assert_array_equal(fast, voxel.voxel_downsample(P, size))
+    with pytest.raises(Exception, match="positive"):
+        monkeypatch.setattr(voxel, "_COMPILED_MIN_POINTS", 0)
+        voxel.voxel_downsample(P, -1.0)
