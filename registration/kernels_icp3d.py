@@ -35,90 +35,80 @@ _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _CACHED, _BOUND_FACTOR, _TAU = 8, 2.0, 1e-9
 
 
+#: Grids larger than this many cells get coarser cells (a 200 m × 200 m × 20 m local map at 1 m holds 800k).
+MAX_CELLS = 8_000_000
+
+
 class VoxelGrid3D:
-    """Hashed uniform-grid index of 3D points ``(N, 3)`` (m), cells of side *cell* (m). The points are kept
-    reordered cell by cell (``cell_points``, and ``order``: their indices in *points*) so that a search reads
-    each cell's points from one contiguous block; the hash table (``table``: key, first, end per slot) holds
-    about twice as many slots as occupied cells."""
+    """Uniform-grid index of 3D points ``(N, 3)`` (m) over their bounding box, cubic cells of side *cell* (m;
+    grown when the box would need more than ``MAX_CELLS``). The points are kept reordered cell by cell
+    (``cell_points``; ``order``: their indices in *points*) so that a search reads each cell's points from one
+    contiguous block: cell (i, j, k) holds ``cell_points[starts[c] : starts[c + 1]]``, c = (i·ny + j)·nz + k."""
 
     def __init__(self, points: Array, cell: float = 1.0) -> None:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
             raise ValueError(f"VoxelGrid3D needs (N, 3) points, got shape {pts.shape}")
-        self.points = pts
-        self.cell = float(cell)
-        self.origin = pts.min(axis=0)
-        self.dims = (np.floor((pts.max(axis=0) - self.origin) / self.cell).astype(np.int64) + 1)
-        self.bits, self.table, self.order, self.cell_points = _bucket3(pts, self.origin, self.cell)
+        lo, hi = _bounds(pts)
+        span = np.maximum(hi - lo, 1e-9)
+        cell = max(float(cell), float(np.prod(span) / MAX_CELLS) ** (1.0 / 3.0))
+        dims = np.floor(span / cell).astype(np.int64) + 1
+        while int(np.prod(dims)) > MAX_CELLS:  # rounding up each axis can overshoot
+            cell *= 1.1
+            dims = np.floor(span / cell).astype(np.int64) + 1
+        self.points, self.cell, self.origin, self.dims = pts, cell, lo, dims
+        self.starts, self.order, self.cell_points = _bucket3(pts, lo, cell, dims)
 
     def args(self) -> tuple:
         """The grid as the positional arguments every kernel takes after the points."""
-        return (self.cell_points, self.origin, self.cell, self.dims, self.bits, self.table, self.order)
-
-
-@njit(cache=True, inline="always")
-def _cell_key(i, j, k):  # pragma: no cover - compiled
-    """One int64 per cell (21 bits per axis, offset so that cells a little outside the box stay distinct)."""
-    return ((i + 1048576) << 42) | ((j + 1048576) << 21) | (k + 1048576)
-
-
-@njit(cache=True, inline="always")
-def _slot(key, table, bits):  # pragma: no cover - compiled
-    """Hash slot of *key*: its own, or the empty one (key −1) where it would go."""
-    mask = (1 << bits) - 1
-    h = np.int64((np.uint64(key) * _GOLDEN) >> np.uint64(64 - bits))
-    while table[h, 0] != -1 and table[h, 0] != key:
-        h = (h + 1) & mask
-    return h
+        return (self.cell_points, self.origin, self.cell, self.dims, self.starts, self.order)
 
 
 @njit(cache=True)
-def _bucket3(pts, origin, cell):  # pragma: no cover - compiled
+def _bounds(pts):  # pragma: no cover - compiled
+    lo = pts[0].copy()
+    hi = pts[0].copy()
+    for p in range(1, pts.shape[0]):
+        for a in range(3):
+            v = pts[p, a]
+            if v < lo[a]:
+                lo[a] = v
+            elif v > hi[a]:
+                hi[a] = v
+    return lo, hi
+
+
+@njit(cache=True, inline="always")
+def _cell_index(x, y, z, origin, cell, dims):  # pragma: no cover - compiled
+    """Dense index of the cell holding (x, y, z), clamped into the box (only box points are bucketed)."""
+    i = min(max(int(math.floor((x - origin[0]) / cell)), 0), dims[0] - 1)
+    j = min(max(int(math.floor((y - origin[1]) / cell)), 0), dims[1] - 1)
+    k = min(max(int(math.floor((z - origin[2]) / cell)), 0), dims[2] - 1)
+    return (i * dims[1] + j) * dims[2] + k
+
+
+@njit(cache=True)
+def _bucket3(pts, origin, cell, dims):  # pragma: no cover - compiled
     n = pts.shape[0]
-    cell_key = np.empty(n, np.int64)
-    # distinct cells first (a table of 2n slots), then the compact table of ~2 slots per occupied cell
-    bits = 4
-    while (1 << bits) < 2 * n:
-        bits += 1
-    big = np.full((1 << bits, 1), -1, np.int64)
-    occupied = 0
+    ncell = dims[0] * dims[1] * dims[2]
+    key = np.empty(n, np.int64)
+    starts = np.zeros(ncell + 1, np.int64)
     for p in range(n):
-        i = int(math.floor((pts[p, 0] - origin[0]) / cell))
-        j = int(math.floor((pts[p, 1] - origin[1]) / cell))
-        k = int(math.floor((pts[p, 2] - origin[2]) / cell))
-        key = _cell_key(i, j, k)
-        cell_key[p] = key
-        h = _slot(key, big, bits)
-        if big[h, 0] == -1:
-            big[h, 0] = key
-            occupied += 1
-    bits = 4
-    while (1 << bits) < 2 * occupied:
-        bits += 1
-    size = 1 << bits
-    table = np.full((size, 3), -1, np.int64)  # key, first, end (indices into order / cell_points)
-    slot_of = np.empty(n, np.int64)
-    counts = np.zeros(size + 1, np.int64)
-    for p in range(n):
-        h = _slot(cell_key[p], table, bits)
-        table[h, 0] = cell_key[p]
-        slot_of[p] = h
-        counts[h + 1] += 1
-    for s in range(size):
-        counts[s + 1] += counts[s]
-    for s in range(size):
-        table[s, 1] = counts[s]
-        table[s, 2] = counts[s + 1]
-    fill = counts[:-1].copy()
+        c = _cell_index(pts[p, 0], pts[p, 1], pts[p, 2], origin, cell, dims)
+        key[p] = c
+        starts[c + 1] += 1
+    for c in range(ncell):
+        starts[c + 1] += starts[c]
+    fill = starts[:-1].copy()
     order = np.empty(n, np.int64)
     for p in range(n):  # ascending point index within a cell
-        order[fill[slot_of[p]]] = p
-        fill[slot_of[p]] += 1
+        order[fill[key[p]]] = p
+        fill[key[p]] += 1
     cell_points = np.empty((n, 3))
     for q in range(n):
         o = order[q]
         cell_points[q, 0], cell_points[q, 1], cell_points[q, 2] = pts[o, 0], pts[o, 1], pts[o, 2]
-    return bits, table, order, cell_points
+    return starts, order, cell_points
 
 
 #: margin (m) on the geometric cell bounds of the searches: a point's cell is floor((p − origin) / cell) in floating
@@ -144,7 +134,7 @@ def _gap(x, lo, d, cell):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
-def knn3(x, y, z, pts, cpts, origin, cell, dims, bits, table, order, k, bound, bd, bi, max_r=1 << 30):  # pragma: no cover - compiled
+def knn3(x, y, z, pts, cpts, origin, cell, dims, starts, order, k, bound, bd, bi, max_r=1 << 30):  # pragma: no cover - compiled
     """The *k* grid points nearest to (x, y, z) strictly closer than *bound* (``inf``: unbounded), nearest first:
     squared distances in ``bd[:k]`` and indices in ``bi[:k]`` (``inf`` / −1 past the last found). Exact: a cell
     is skipped when its box is farther than the k-th point found so far (or than *bound*), and the search stops
@@ -185,9 +175,9 @@ def knn3(x, y, z, pts, cpts, origin, cell, dims, bits, table, order, k, bound, b
                     if g2 >= bd[k - 1] or g2 >= b2:
                         dk += step
                         continue
-                    h = _slot(_cell_key(ci + di, cj + dj, ck + dk), table, bits)
-                    if table[h, 0] != -1:
-                        for q in range(table[h, 1], table[h, 2]):
+                    c = ((ci + di) * ny + cj + dj) * nz + ck + dk
+                    if starts[c + 1] > starts[c]:
+                        for q in range(starts[c], starts[c + 1]):
                             ux = cpts[q, 0] - x
                             uy = cpts[q, 1] - y
                             uz = cpts[q, 2] - z
@@ -257,9 +247,9 @@ def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):  # pragma: no cover - c
 
 
 @njit(cache=True, inline="always")
-def _normal_at(p, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bd, bi):  # pragma: no cover - compiled
+def _normal_at(p, normals, pts, cpts, origin, cell, dims, starts, order, k, bd, bi):  # pragma: no cover - compiled
     """PCA normal of grid point *p* from its *k* nearest grid points (itself included), as estimate_normals."""
-    knn3(pts[p, 0], pts[p, 1], pts[p, 2], pts, cpts, origin, cell, dims, bits, table, order, k, np.inf, bd, bi)
+    knn3(pts[p, 0], pts[p, 1], pts[p, 2], pts, cpts, origin, cell, dims, starts, order, k, np.inf, bd, bi)
     mx = my = mz = 0.0
     for s in range(k):
         o = bi[s]
@@ -283,25 +273,25 @@ def _normal_at(p, normals, pts, cpts, origin, cell, dims, bits, table, order, k,
 
 
 @njit(cache=True)
-def normals_3d(index, normals, have, pts, cpts, origin, cell, dims, bits, table, order, k):  # pragma: no cover - compiled
+def normals_3d(index, normals, have, pts, cpts, origin, cell, dims, starts, order, k):  # pragma: no cover - compiled
     """Fill ``normals[p]`` for each p in *index* not yet *have* (k-neighbour PCA, k ≤ number of points)."""
     bd = np.empty(k)
     bi = np.empty(k, np.int64)
     for m in range(index.shape[0]):
         p = index[m]
         if not have[p]:
-            _normal_at(p, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bd, bi)
+            _normal_at(p, normals, pts, cpts, origin, cell, dims, starts, order, k, bd, bi)
             have[p] = True
 
 
 @njit(cache=True, inline="always")
-def _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits, table, order,
+def _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts, order,
             bd, bi):  # pragma: no cover - compiled
     """Search source point *p* at (mx, my, mz) afresh: cache its K nearest within the bound (matching._search),
     their indices in *cand* and their coordinates in *cand_xyz* (read in sequence by the checks that follow)."""
     kc = cand.shape[1]
     bound = _BOUND_FACTOR * gate
-    knn3(mx, my, mz, pts, cpts, origin, cell, dims, bits, table, order, kc, bound, bd, bi)
+    knn3(mx, my, mz, pts, cpts, origin, cell, dims, starts, order, kc, bound, bd, bi)
     n_tgt = pts.shape[0]
     at[p, 0], at[p, 1], at[p, 2] = mx, my, mz
     d1[p] = math.sqrt(bd[0])
@@ -314,7 +304,7 @@ def _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, orig
 
 
 @njit(cache=True)
-def _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits, table,
+def _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts,
            order, bd, bi):  # pragma: no cover - compiled
     """Index of the target point nearest to (mx, my, mz) strictly within *gate*, else len(pts): from the cached
     candidates while the motion since the last search keeps them certain (registration.matching), else after a
@@ -336,7 +326,7 @@ def _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts
                     best = dist
                     b = j
             return b if best < gate else n_tgt
-    _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits, table, order,
+    _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts, order,
             bd, bi)
     return cand[p, 0] if d1[p] < gate else n_tgt
 
@@ -395,8 +385,16 @@ def _apply_se3_left(xi, R, t):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def _unsort(idx, perm):  # pragma: no cover - compiled
+    out = np.empty_like(idx)
+    for p in range(idx.shape[0]):
+        out[perm[p]] = idx[p]
+    return out
+
+
+@njit(cache=True)
 def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, min_inliers,
-                 normals, have, k, pts, cpts, origin, cell, dims, bits, table, order):  # pragma: no cover - compiled
+                 normals, have, k, pts, cpts, origin, cell, dims, starts, order):  # pragma: no cover - compiled
     """Point-to-plane ICP iterations of ``registration.point_to_plane.icp_point_to_plane`` in 3D (left
     increment, Jacobian rows [nᵀ, (m × n)ᵀ], Low 2004), source ``S (N, 3)`` from ``(R, t)``; *robust* 0 = none,
     1 = Huber, 2 = Cauchy on |e| with *scale*. Normals of the matched target points are filled into *normals*
@@ -404,8 +402,16 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     *matches* the nearest target point strictly within the last gate of each source point at the final pose
     (len(pts): none); 1 = fewer than *min_inliers* pairs (*pairs*) within ``gates[stage]`` at iteration
     *iterations*; 2 = singular normal equations."""
-    n = S.shape[0]
     n_tgt = pts.shape[0]
+    # The source in the grid's cell order: consecutive points search, and read the normals of, the same cells.
+    key = np.empty(S.shape[0], np.int64)
+    for p in range(S.shape[0]):
+        key[p] = _cell_index(R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0],
+                             R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1],
+                             R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2], origin, cell, dims)
+    perm = np.argsort(key, kind="mergesort")
+    S = S[perm]
+    n = S.shape[0]
     kc = max(2, min(_CACHED, n_tgt))
     R = R.copy()
     t = t.copy()
@@ -458,13 +464,13 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                             q = n_tgt
                 if q < 0:
                     q = _match(p, mx, my, mz, gate, True, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell,
-                               dims, bits, table, order, bd, bi)
+                               dims, starts, order, bd, bi)
                 idx[p] = q
                 if q < n_tgt:
                     n_ok += 1
             fresh = False
             if n_ok < min_inliers:
-                return R, t, it, False, 1, stage, n_ok, idx
+                return R, t, it, False, 1, stage, n_ok, _unsort(idx, perm)
             H = np.zeros((6, 6))
             g = np.zeros(6)
             J = np.empty(6)
@@ -474,7 +480,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                     continue
                 if q != pair[p]:
                     if not have[q]:
-                        _normal_at(q, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bdk, bik)
+                        _normal_at(q, normals, pts, cpts, origin, cell, dims, starts, order, k, bdk, bik)
                         have[q] = True
                     pair[p] = q
                     for a in range(3):
@@ -502,7 +508,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                     H[a, b] = H[b, a]
             xi = _solve(H, -g)
             if xi[0] != xi[0]:  # NaN: singular
-                return R, t, it, False, 2, stage, n_ok, idx
+                return R, t, it, False, 2, stage, n_ok, _unsort(idx, perm)
             R, t = _apply_se3_left(xi, R, t)
             if (math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2]) < tol_t
                     and math.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5]) < tol_r):
@@ -514,13 +520,13 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
         mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
         my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
         mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
-        q = _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, bits,
-                   table, order, bd, bi)
+        q = _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts,
+                   order, bd, bi)
         idx[p] = q
         if q < n_tgt and not have[q]:
-            _normal_at(q, normals, pts, cpts, origin, cell, dims, bits, table, order, k, bdk, bik)
+            _normal_at(q, normals, pts, cpts, origin, cell, dims, starts, order, k, bdk, bik)
             have[q] = True
-    return R, t, it, converged, 0, gates.shape[0] - 1, n, idx
+    return R, t, it, converged, 0, gates.shape[0] - 1, n, _unsort(idx, perm)
 
 
 @njit(cache=True)
