@@ -134,11 +134,33 @@ def _gap(x, lo, d, cell):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
+def _visit(c, x, y, z, cpts, order, starts, k, b2, bd, bi):  # pragma: no cover - compiled
+    """Insert the points of cell *c* closer than the current k-th (and than √b2) into the sorted k best."""
+    lim = min(bd[k - 1], b2)
+    for q in range(starts[c], starts[c + 1]):
+        ux = cpts[q, 0] - x
+        uy = cpts[q, 1] - y
+        uz = cpts[q, 2] - z
+        d2 = ux * ux + uy * uy + uz * uz
+        if d2 < lim:
+            s = k - 1
+            while s > 0 and bd[s - 1] > d2:
+                bd[s] = bd[s - 1]
+                bi[s] = bi[s - 1]
+                s -= 1
+            bd[s] = d2
+            bi[s] = order[q]
+            lim = min(bd[k - 1], b2)
+
+
+@njit(cache=True, inline="always")
 def knn3(x, y, z, pts, cpts, origin, cell, dims, starts, order, k, bound, bd, bi, max_r=1 << 30):  # pragma: no cover - compiled
     """The *k* grid points nearest to (x, y, z) strictly closer than *bound* (``inf``: unbounded), nearest first:
     squared distances in ``bd[:k]`` and indices in ``bi[:k]`` (``inf`` / −1 past the last found). Exact: a cell
     is skipped when its box is farther than the k-th point found so far (or than *bound*), and the search stops
-    once every unvisited cell is. Returns False when it stopped at shell *max_r* before that."""
+    once every unvisited cell is. It visits first the 2×2×2 cells around the query (its own and the nearer
+    neighbour along each axis: every point within half a cell of the query is in them), then cubic shells of
+    cells about its own. Returns False when it stopped at shell *max_r* before that."""
     ci = int(math.floor((x - origin[0]) / cell))
     cj = int(math.floor((y - origin[1]) / cell))
     ck = int(math.floor((z - origin[2]) / cell))
@@ -148,7 +170,38 @@ def knn3(x, y, z, pts, cpts, origin, cell, dims, starts, order, k, bound, bd, bi
         bi[s] = -1
     b2 = bound * bound
     nx, ny, nz = dims[0], dims[1], dims[2]
-    r = 0
+    # the 2×2×2 block: offsets 0 and s* along each axis
+    sx = -1 if x - lox < 0.5 * cell else 1
+    sy = -1 if y - loy < 0.5 * cell else 1
+    sz = -1 if z - loz < 0.5 * cell else 1
+    for a in range(2):
+        di = a * sx
+        if ci + di < 0 or ci + di >= nx:
+            continue
+        gx = _gap(x, lox, di, cell)
+        for b in range(2):
+            dj = b * sy
+            if cj + dj < 0 or cj + dj >= ny:
+                continue
+            gy = _gap(y, loy, dj, cell)
+            for e in range(2):
+                dk = e * sz
+                if ck + dk < 0 or ck + dk >= nz:
+                    continue
+                gz = _gap(z, loz, dk, cell)
+                g2 = gx * gx + gy * gy + gz * gz
+                if g2 < bd[k - 1] and g2 < b2:
+                    _visit(((ci + di) * ny + cj + dj) * nz + ck + dk, x, y, z, cpts, order, starts, k, b2, bd, bi)
+    rx = min(x - lox, lox + cell - x) + cell  # the block's faces: one cell beyond the query's own on the near side
+    ry = min(y - loy, loy + cell - y) + cell
+    rz = min(z - loz, loz + cell - z) + cell
+    rx = min(rx, lox + cell - x if sx < 0 else x - lox)
+    ry = min(ry, loy + cell - y if sy < 0 else y - loy)
+    rz = min(rz, loz + cell - z if sz < 0 else z - loz)
+    reach = min(rx, ry, rz) - _MARGIN
+    if reach >= bound or (bi[k - 1] >= 0 and bd[k - 1] <= reach * reach):
+        return True
+    r = 1
     while True:
         for di in range(-r, r + 1):
             ei = di == -r or di == r
@@ -156,6 +209,7 @@ def knn3(x, y, z, pts, cpts, origin, cell, dims, starts, order, k, bound, bd, bi
                 continue
             gx = _gap(x, lox, di, cell)
             gx2 = gx * gx
+            in_x = r == 1 and (di == 0 or di == sx)
             for dj in range(-r, r + 1):
                 ej = ei or dj == -r or dj == r
                 if cj + dj < 0 or cj + dj >= ny:
@@ -164,32 +218,17 @@ def knn3(x, y, z, pts, cpts, origin, cell, dims, starts, order, k, bound, bd, bi
                 gxy2 = gx2 + gy * gy
                 if gxy2 >= bd[k - 1] or gxy2 >= b2:
                     continue
+                in_xy = in_x and (dj == 0 or dj == sy)
                 dk = -r
                 while dk <= r:
                     step = 1 if ej else 2 * r
-                    if ck + dk < 0 or ck + dk >= nz:
+                    if ck + dk < 0 or ck + dk >= nz or (in_xy and (dk == 0 or dk == sz)):
                         dk += step
                         continue
                     gz = _gap(z, loz, dk, cell)
                     g2 = gxy2 + gz * gz
-                    if g2 >= bd[k - 1] or g2 >= b2:
-                        dk += step
-                        continue
-                    c = ((ci + di) * ny + cj + dj) * nz + ck + dk
-                    if starts[c + 1] > starts[c]:
-                        for q in range(starts[c], starts[c + 1]):
-                            ux = cpts[q, 0] - x
-                            uy = cpts[q, 1] - y
-                            uz = cpts[q, 2] - z
-                            d2 = ux * ux + uy * uy + uz * uz
-                            if d2 < bd[k - 1] and d2 < b2:  # insert into the sorted k best
-                                s = k - 1
-                                while s > 0 and bd[s - 1] > d2:
-                                    bd[s] = bd[s - 1]
-                                    bi[s] = bi[s - 1]
-                                    s -= 1
-                                bd[s] = d2
-                                bi[s] = order[q]
+                    if g2 < bd[k - 1] and g2 < b2:
+                        _visit(((ci + di) * ny + cj + dj) * nz + ck + dk, x, y, z, cpts, order, starts, k, b2, bd, bi)
                     dk += step
         reach = min(_reach(x, lox, r, cell), _reach(y, loy, r, cell), _reach(z, loz, r, cell)) - _MARGIN
         if reach >= bound or (bi[k - 1] >= 0 and bd[k - 1] <= reach * reach):
