@@ -242,47 +242,47 @@ def knn3(x, y, z, pts, cpts, origin, cell, dims, starts, order, k, bound, bd, bi
 
 
 @njit(cache=True, inline="always")
+def _rotate(app, aqq, apq, apr, aqr, vp0, vp1, vp2, vq0, vq1, vq2):  # pragma: no cover - compiled
+    """One Jacobi rotation zeroing a_pq of a symmetric 3×3 (r the third index): the new a_pp, a_qq, a_pr, a_qr
+    and eigenvector columns p, q."""
+    theta = (aqq - app) / (2.0 * apq)
+    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    s = t * c
+    return (app - t * apq, aqq + t * apq, c * apr - s * aqr, s * apr + c * aqr,
+            c * vp0 - s * vq0, c * vp1 - s * vq1, c * vp2 - s * vq2, s * vp0 + c * vq0, s * vp1 + c * vq1,
+            s * vp2 + c * vq2)
+
+
+@njit(cache=True, inline="always")
 def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):  # pragma: no cover - compiled
     """Unit eigenvector of the smallest eigenvalue of the symmetric 3×3 matrix, by cyclic Jacobi rotations
-    (Golub & Van Loan §8.5) to machine precision."""
-    A = np.empty((3, 3))
-    A[0, 0], A[0, 1], A[0, 2] = a00, a01, a02
-    A[1, 0], A[1, 1], A[1, 2] = a01, a11, a12
-    A[2, 0], A[2, 1], A[2, 2] = a02, a12, a22
-    V = np.eye(3)
+    (Golub & Van Loan §8.5) to machine precision, in scalars (no array per call)."""
+    v00, v01, v02, v10, v11, v12, v20, v21, v22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0  # v_ij: row i, column j
     for _sweep in range(50):
-        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
-        diag = A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2]
-        if off <= 1e-36 * diag or off == 0.0:
+        off = a01 * a01 + a02 * a02 + a12 * a12
+        if off == 0.0 or off <= 1e-36 * (a00 * a00 + a11 * a11 + a22 * a22):
             break
-        for p in range(2):
-            for q in range(p + 1, 3):
-                apq = A[p, q]
-                if apq == 0.0:
-                    continue
-                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
-                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for m in range(3):  # A ← Jᵀ A J
-                    amp, amq = A[m, p], A[m, q]
-                    A[m, p] = c * amp - s * amq
-                    A[m, q] = s * amp + c * amq
-                for m in range(3):
-                    apm, aqm = A[p, m], A[q, m]
-                    A[p, m] = c * apm - s * aqm
-                    A[q, m] = s * apm + c * aqm
-                for m in range(3):  # V ← V J
-                    vmp, vmq = V[m, p], V[m, q]
-                    V[m, p] = c * vmp - s * vmq
-                    V[m, q] = s * vmp + c * vmq
-    j = 0
-    if A[1, 1] < A[j, j]:
-        j = 1
-    if A[2, 2] < A[j, j]:
-        j = 2
-    nv = math.sqrt(V[0, j] * V[0, j] + V[1, j] * V[1, j] + V[2, j] * V[2, j])
-    return V[0, j] / nv, V[1, j] / nv, V[2, j] / nv
+        if a01 != 0.0:  # (p, q, r) = (0, 1, 2)
+            a00, a11, a02, a12, v00, v10, v20, v01, v11, v21 = _rotate(a00, a11, a01, a02, a12,
+                                                                       v00, v10, v20, v01, v11, v21)
+            a01 = 0.0
+        if a02 != 0.0:  # (0, 2, 1)
+            a00, a22, a01, a12, v00, v10, v20, v02, v12, v22 = _rotate(a00, a22, a02, a01, a12,
+                                                                       v00, v10, v20, v02, v12, v22)
+            a02 = 0.0
+        if a12 != 0.0:  # (1, 2, 0)
+            a11, a22, a01, a02, v01, v11, v21, v02, v12, v22 = _rotate(a11, a22, a12, a01, a02,
+                                                                       v01, v11, v21, v02, v12, v22)
+            a12 = 0.0
+    if a00 <= a11 and a00 <= a22:
+        x, y, z = v00, v10, v20
+    elif a11 <= a22:
+        x, y, z = v01, v11, v21
+    else:
+        x, y, z = v02, v12, v22
+    nv = math.sqrt(x * x + y * y + z * z)
+    return x / nv, y / nv, z / nv
 
 
 @njit(cache=True, inline="always")
@@ -343,31 +343,47 @@ def _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, orig
 
 
 @njit(cache=True)
-def _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts,
-           order, bd, bi):  # pragma: no cover - compiled
+def _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, pts, cpts, origin, cell, dims,
+              starts, order, bd, bi):  # pragma: no cover - compiled
     """Index of the target point nearest to (mx, my, mz) strictly within *gate*, else len(pts): from the cached
     candidates while the motion since the last search keeps them certain (registration.matching), else after a
-    fresh search."""
+    fresh search. Also records in *held* / *slack2* how far the point may move from here with the same answer:
+    the cache stays certain (its radius), the match stays the strictly nearest candidate (half the gap to the
+    second), and on the same side of the gate — each less the margin τ, so that rounding cannot decide."""
     n_tgt = pts.shape[0]
+    eps = 0.0
     if not fresh:
         ex, ey, ez = mx - at[p, 0], my - at[p, 1], mz - at[p, 2]
         eps = math.sqrt(ex * ex + ey * ey + ez * ez)
-        if min(gate, d1[p] + eps) + eps < radius[p] - _TAU:
-            best = np.inf
-            b = n_tgt
-            for c in range(cand.shape[1]):
-                j = cand[p, c]
-                if j >= n_tgt:
-                    break
-                ux, uy, uz = mx - cand_xyz[p, c, 0], my - cand_xyz[p, c, 1], mz - cand_xyz[p, c, 2]
-                dist = math.sqrt(ux * ux + uy * uy + uz * uz)
-                if dist < best:
-                    best = dist
-                    b = j
-            return b if best < gate else n_tgt
-    _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts, order,
-            bd, bi)
-    return cand[p, 0] if d1[p] < gate else n_tgt
+    if fresh or not min(gate, d1[p] + eps) + eps < radius[p] - _TAU:
+        _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts, order,
+                bd, bi)
+        eps = 0.0
+    best = second = np.inf
+    q = n_tgt
+    for c in range(cand.shape[1]):
+        j = cand[p, c]
+        if j >= n_tgt:
+            break
+        ux, uy, uz = mx - cand_xyz[p, c, 0], my - cand_xyz[p, c, 1], mz - cand_xyz[p, c, 2]
+        dist = math.sqrt(ux * ux + uy * uy + uz * uz)
+        if dist < best:
+            second = best
+            best = dist
+            q = j
+        elif dist < second:
+            second = dist
+    if best < gate:
+        keep = min(0.5 * (second - best), gate - best)
+    else:
+        q = n_tgt
+        keep = best - gate
+    # the cache certificate min(gate, d1 + e) + e < radius − τ at a motion e ≤ eps + δ from the search position
+    room = radius[p] - _TAU - eps
+    keep = min(keep, max(0.5 * (room - d1[p] - eps), room - gate)) - _TAU
+    held[p, 0], held[p, 1], held[p, 2] = mx, my, mz
+    slack2[p] = keep * keep if keep > 0.0 else -1.0
+    return q
 
 
 @njit(cache=True)
@@ -469,11 +485,15 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     pair = np.full(n, -1, np.int64)
     pair_xyz = np.empty((n, 3))
     pair_n = np.empty((n, 3))
+    # where each match was last evaluated, and the squared distance the point may move from there keeping it
+    held = np.zeros((n, 3))
+    slack2 = np.full(n, -1.0)
     fresh = True
     it = 0
     converged = False
     for stage in range(gates.shape[0]):
         gate = gates[stage]
+        slack2[:] = -1.0  # the slack depends on the gate
         converged = False
         while it < max_iterations:
             it += 1
@@ -483,27 +503,12 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
                 mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
                 moved[p, 0], moved[p, 1], moved[p, 2] = mx, my, mz
-                q = -1
-                if not fresh:  # the check of _match, inline: a call passes ~20 reference-counted arrays
-                    ex, ey, ez = mx - at[p, 0], my - at[p, 1], mz - at[p, 2]
-                    eps = math.sqrt(ex * ex + ey * ey + ez * ez)
-                    if min(gate, d1[p] + eps) + eps < radius[p] - _TAU:
-                        best = np.inf
-                        q = n_tgt
-                        for c in range(kc):
-                            j = cand[p, c]
-                            if j >= n_tgt:
-                                break
-                            ux, uy, uz = mx - cand_xyz[p, c, 0], my - cand_xyz[p, c, 1], mz - cand_xyz[p, c, 2]
-                            dist = math.sqrt(ux * ux + uy * uy + uz * uz)
-                            if dist < best:
-                                best = dist
-                                q = j
-                        if best >= gate:
-                            q = n_tgt
-                if q < 0:
-                    q = _match(p, mx, my, mz, gate, True, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell,
-                               dims, starts, order, bd, bi)
+                ex, ey, ez = mx - held[p, 0], my - held[p, 1], mz - held[p, 2]
+                if ex * ex + ey * ey + ez * ez < slack2[p]:
+                    q = idx[p]  # certainly the same match as where it was last evaluated
+                else:
+                    q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, pts, cpts,
+                                  origin, cell, dims, starts, order, bd, bi)
                 idx[p] = q
                 if q < n_tgt:
                     n_ok += 1
@@ -554,13 +559,19 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 converged = True
                 break
     # The matches at the final pose and the last gate (the evaluation's), with their normals.
-    gate = gates[gates.shape[0] - 1]
+    if gate != gates[gates.shape[0] - 1]:  # the iteration cap ended an earlier stage
+        gate = gates[gates.shape[0] - 1]
+        slack2[:] = -1.0
     for p in range(n):
         mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
         my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
         mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
-        q = _match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts,
-                   order, bd, bi)
+        ex, ey, ez = mx - held[p, 0], my - held[p, 1], mz - held[p, 2]
+        if ex * ex + ey * ey + ez * ez < slack2[p]:
+            q = idx[p]
+        else:
+            q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, pts, cpts, origin,
+                          cell, dims, starts, order, bd, bi)
         idx[p] = q
         if q < n_tgt and not have[q]:
             _normal_at(q, normals, pts, cpts, origin, cell, dims, starts, order, k, bdk, bik)
