@@ -342,14 +342,29 @@ def _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, orig
             cand_xyz[p, s, 0], cand_xyz[p, s, 1], cand_xyz[p, s, 2] = pts[j, 0], pts[j, 1], pts[j, 2]
 
 
+@njit(cache=True, inline="always")
+def _slack2(gate, best, second, d1, radius, eps):  # pragma: no cover - compiled
+    """Squared distance a source point may move, from where its candidates were compared, with the same answer
+    (−1: none): the match stays the strictly nearest candidate (half the gap to the second) and on the same
+    side of the gate, and the cache stays certain — min(gate, d1 + e) + e < radius − τ at a motion e ≤ eps + δ
+    from the search position — each less the margin τ, so that rounding cannot decide."""
+    if best < gate:
+        keep = min(0.5 * (second - best), gate - best)
+    else:
+        keep = best - gate
+    room = radius - _TAU - eps
+    keep = min(keep, max(0.5 * (room - d1 - eps), room - gate)) - _TAU
+    return keep * keep if keep > 0.0 else -1.0
+
+
 @njit(cache=True)
-def _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, pts, cpts, origin, cell, dims,
-              starts, order, bd, bi):  # pragma: no cover - compiled
+def _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin, cell,
+              dims, starts, order, bd, bi):  # pragma: no cover - compiled
     """Index of the target point nearest to (mx, my, mz) strictly within *gate*, else len(pts): from the cached
     candidates while the motion since the last search keeps them certain (registration.matching), else after a
-    fresh search. Also records in *held* / *slack2* how far the point may move from here with the same answer:
-    the cache stays certain (its radius), the match stays the strictly nearest candidate (half the gap to the
-    second), and on the same side of the gate — each less the margin τ, so that rounding cannot decide."""
+    fresh search. Records where (*held*), how far the point may move from there with the same answer
+    (*slack2*, :func:`_slack2`), and *near*: the nearest candidate, its distance, the second's and the motion
+    since the search (a new gate's answer and slack follow from them)."""
     n_tgt = pts.shape[0]
     eps = 0.0
     if not fresh:
@@ -359,31 +374,25 @@ def _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, 
         _search(p, mx, my, mz, gate, at, d1, radius, cand, cand_xyz, pts, cpts, origin, cell, dims, starts, order,
                 bd, bi)
         eps = 0.0
-    best = second = np.inf
-    q = n_tgt
+    best2 = second2 = np.inf
+    j_best = n_tgt
     for c in range(cand.shape[1]):
         j = cand[p, c]
         if j >= n_tgt:
             break
         ux, uy, uz = mx - cand_xyz[p, c, 0], my - cand_xyz[p, c, 1], mz - cand_xyz[p, c, 2]
-        dist = math.sqrt(ux * ux + uy * uy + uz * uz)
-        if dist < best:
-            second = best
-            best = dist
-            q = j
-        elif dist < second:
-            second = dist
-    if best < gate:
-        keep = min(0.5 * (second - best), gate - best)
-    else:
-        q = n_tgt
-        keep = best - gate
-    # the cache certificate min(gate, d1 + e) + e < radius − τ at a motion e ≤ eps + δ from the search position
-    room = radius[p] - _TAU - eps
-    keep = min(keep, max(0.5 * (room - d1[p] - eps), room - gate)) - _TAU
+        dist2 = ux * ux + uy * uy + uz * uz
+        if dist2 < best2:
+            second2 = best2
+            best2 = dist2
+            j_best = j
+        elif dist2 < second2:
+            second2 = dist2
+    best, second = math.sqrt(best2), math.sqrt(second2)
     held[p, 0], held[p, 1], held[p, 2] = mx, my, mz
-    slack2[p] = keep * keep if keep > 0.0 else -1.0
-    return q
+    near[p, 0], near[p, 1], near[p, 2], near[p, 3] = j_best, best, second, eps
+    slack2[p] = _slack2(gate, best, second, d1[p], radius[p], eps)
+    return j_best if best < gate else n_tgt
 
 
 @njit(cache=True)
@@ -440,6 +449,19 @@ def _apply_se3_left(xi, R, t):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def _regate(gate, idx, slack2, near, d1, radius, n_tgt):  # pragma: no cover - compiled
+    """A new gate: each point's answer where its candidates were last compared, and its slack, from *near*
+    (the cache must stay certain there under the new gate, else the point is compared again)."""
+    for p in range(idx.shape[0]):
+        best, second, eps = near[p, 1], near[p, 2], near[p, 3]
+        if min(gate, d1[p] + eps) + eps < radius[p] - _TAU:
+            idx[p] = np.int64(near[p, 0]) if best < gate else n_tgt
+            slack2[p] = _slack2(gate, best, second, d1[p], radius[p], eps)
+        else:
+            slack2[p] = -1.0
+
+
+@njit(cache=True)
 def _unsort(idx, perm):  # pragma: no cover - compiled
     out = np.empty_like(idx)
     for p in range(idx.shape[0]):
@@ -488,12 +510,14 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     # where each match was last evaluated, and the squared distance the point may move from there keeping it
     held = np.zeros((n, 3))
     slack2 = np.full(n, -1.0)
+    near = np.empty((n, 4))  # nearest candidate there, its distance, the second's, motion since the search
     fresh = True
     it = 0
     converged = False
     for stage in range(gates.shape[0]):
         gate = gates[stage]
-        slack2[:] = -1.0  # the slack depends on the gate
+        if not fresh:
+            _regate(gate, idx, slack2, near, d1, radius, n_tgt)
         converged = False
         while it < max_iterations:
             it += 1
@@ -507,7 +531,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 if ex * ex + ey * ey + ez * ez < slack2[p]:
                     q = idx[p]  # certainly the same match as where it was last evaluated
                 else:
-                    q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, pts, cpts,
+                    q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts,
                                   origin, cell, dims, starts, order, bd, bi)
                 idx[p] = q
                 if q < n_tgt:
@@ -561,7 +585,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     # The matches at the final pose and the last gate (the evaluation's), with their normals.
     if gate != gates[gates.shape[0] - 1]:  # the iteration cap ended an earlier stage
         gate = gates[gates.shape[0] - 1]
-        slack2[:] = -1.0
+        _regate(gate, idx, slack2, near, d1, radius, n_tgt)
     for p in range(n):
         mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
         my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
@@ -570,7 +594,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
         if ex * ex + ey * ey + ez * ez < slack2[p]:
             q = idx[p]
         else:
-            q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, pts, cpts, origin,
+            q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin,
                           cell, dims, starts, order, bd, bi)
         idx[p] = q
         if q < n_tgt and not have[q]:
