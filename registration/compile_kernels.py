@@ -7,6 +7,7 @@ import numpy as np
 from .kernels import PointGrid, cached_nearest, nearest_within, normals_2d
 from .kernels_correlative import branch_and_bound, score_candidates
 from .kernels_icp import plane_icp_2d
+from .kernels_icp3d import VoxelGrid3D, normals_3d, plane_icp_3d, voxel_first_3d
 
 __all__ = ["compile_all"]
 
@@ -27,6 +28,14 @@ def compile_all() -> None:
         q = np.zeros((2, dim))
         cached_nearest(q, q.copy(), np.zeros(2), np.ones(2), np.zeros((2, 4), np.int64), np.zeros((3, dim)), 0.5, 1e-9,
                        np.zeros(2, np.int64))
+    cloud = np.array([[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [2.0, 0.0, 0.1], [0.0, 1.0, 0.0], [1.0, 1.1, 0.1], [2.0, 1.0, 0.0],
+                      [0.0, 0.0, 1.0], [1.0, 0.0, 1.1], [0.0, 1.0, 1.0], [1.0, 1.0, 1.0], [2.0, 2.0, 1.0], [0.5, 0.5, 0.5]])
+    g3 = VoxelGrid3D(cloud)
+    normals3, have3 = np.zeros_like(cloud), np.zeros(len(cloud), dtype=bool)
+    normals_3d(np.arange(len(cloud)), normals3, have3, g3.points, *g3.args(), 3)
+    plane_icp_3d(cloud.copy(), np.eye(3), np.zeros(3), np.array([0.5]), 2, 1e-4, 1e-4, 2, 0.1, 3, normals3, have3, 3,
+                 g3.points, *g3.args())
+    voxel_first_3d(cloud, 0.5)
     branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1)
 
 
