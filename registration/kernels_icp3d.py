@@ -1,4 +1,4 @@
-"""Compiled (numba) 3D point-to-plane ICP (Chen & Medioni 1992) on a hashed voxel grid of the target: the loop
+"""Compiled (numba) 3D point-to-plane ICP (Chen & Medioni 1992) on a uniform cell grid of the target: the loop
 form of ``registration.point_to_plane.icp_point_to_plane`` in 3D, which stays as its reference (tests check
 that both agree), and of the searches it uses — exact k-nearest neighbours, the cached gated nearest neighbour
 of :mod:`registration.matching` and the PCA normals of :func:`registration.target.estimate_normals`.
@@ -7,11 +7,17 @@ They exist because a LiDAR scan-to-map step (~20k source points against a ~300k-
 iterations) spent most of its time in per-call numpy/scipy work: building a k-d tree of the map for every
 scan, k-neighbour queries and a batched ``eigh`` for the normals, and a dozen array passes per iteration.
 
-Grid: points bucketed into cubic cells of side ``cell`` (m) by a counting sort over an open-addressing hash
-of the occupied cells (a dense 3D array of a 200 m × 200 m map at 0.3 m would hold ~10⁷ cells, nearly all
-empty). A search visits cubic shells of cells around the query's cell; after shell r every unvisited point
-is at least the distance from the query to the faces of the visited block away, which ends the search
-exactly (the 2D grid of :mod:`registration.kernels` does the same with square rings).
+Grid: points bucketed into cubic cells of side ``cell`` (1 m; coarser when the box would need more than
+``MAX_CELLS``) over their bounding box by a counting sort, and stored cell by cell. A search visits the 2×2×2
+cells around the query, then cubic shells of cells around its own, skipping cells farther than the k-th point
+found; once every unvisited cell is farther (the faces of the visited block), the search ends exactly (the 2D
+grid of :mod:`registration.kernels` does the same with square rings). A dense grid over a 200 m × 200 m × 20 m
+local map holds 800k cells at 1 m and builds in ~10 ms for 270k points; a hash of the occupied cells was slower
+to build and to probe (measured on kitti_mini).
+
+Matching keeps the cached-candidate certificate of :mod:`registration.matching` and adds a per-point slack: a
+point that moved less than it from where its candidates were last compared has the same match, so most points
+of a converging iteration cost one squared distance.
 
 Frames: every argument is in one frame (the target's); metres and radians.
 """
@@ -28,7 +34,7 @@ Array = NDArray[np.float64]
 
 __all__ = ["VoxelGrid3D", "knn3", "normals_3d", "plane_icp_3d", "voxel_first_3d"]
 
-#: hash multiplier (Fibonacci hashing, Knuth TAOCP vol. 3 §6.4)
+#: hash multiplier of the voxel subsampling (Fibonacci hashing, Knuth TAOCP vol. 3 §6.4)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 #: neighbours cached per source point by the matcher (registration.matching._CACHED), and the search bound as a
 #: multiple of the gate (registration.matching._BOUND_FACTOR), and the certificate margin (matching._TAU)
