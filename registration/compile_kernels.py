@@ -7,7 +7,8 @@ import numpy as np
 from .kernels import PointGrid, cached_nearest, nearest_within, normals_2d
 from .kernels_correlative import branch_and_bound, score_candidates
 from .kernels_icp import plane_icp_2d
-from .kernels_icp3d import VoxelGrid3D, normals_3d, plane_icp_3d, voxel_first_3d
+from .kernels_grid3d import VoxelGrid3D, normals_3d, voxel_first_3d
+from .kernels_icp3d import plane_icp_3d
 
 __all__ = ["compile_all"]
 

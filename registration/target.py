@@ -105,9 +105,9 @@ class IcpTarget:
 
     @property
     def grid3(self):
-        """3D only: the hashed voxel-grid index of the compiled kernels (:class:`registration.kernels_icp3d.VoxelGrid3D`)."""
+        """3D only: the hashed voxel-grid index of the compiled kernels (:class:`registration.kernels_grid3d.VoxelGrid3D`)."""
         if self._grid3 is None:
-            from .kernels_icp3d import VoxelGrid3D
+            from .kernels_grid3d import VoxelGrid3D
 
             self._grid3 = VoxelGrid3D(self.points)
         return self._grid3

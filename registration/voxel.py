@@ -18,13 +18,13 @@ Array = NDArray[np.float64]
 __all__ = ["voxel_keys", "voxel_downsample", "voxel_downsample_stream"]
 
 #: 3D clouds of at least this many points (a LiDAR scan) are subsampled by the compiled hash of
-#: registration.kernels_icp3d.voxel_first_3d — the same rows, without the sort; below it numpy's sort is as quick.
+#: registration.kernels_grid3d.voxel_first_3d — the same rows, without the sort; below it numpy's sort is as quick.
 _COMPILED_MIN_POINTS = 20000
 
 
 def _first_3d(P: Array, size: float) -> Array:
     """``voxel_downsample(P, size, "first")`` of a 3D cloud by one compiled pass over a hash of the voxels."""
-    from .kernels_icp3d import voxel_first_3d
+    from .kernels_grid3d import voxel_first_3d
 
     if size <= 0 or not np.isfinite(size):
         raise GeometryError(f"voxel size must be positive and finite, got {size}")

@@ -1,4 +1,4 @@
-"""The compiled 3D kernels (registration.kernels_icp3d) against the numpy / scipy implementations they replace
+"""The compiled 3D kernels (registration.kernels_grid3d, kernels_icp3d) against the numpy / scipy implementations they replace
 on the LiDAR odometry's hot path: the same k nearest neighbours, normals, voxel subsampling and ICP poses."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from core import geometry as geo
 from core.errors import DegenerateInputError
-from registration import alignment, kernels_icp3d as k3
+from registration import alignment, kernels_grid3d as k3
 from registration.config import IcpConfig
 from registration.point_to_plane import icp_point_to_plane
 from registration.target import IcpTarget, estimate_normals
