@@ -25,13 +25,16 @@ def test_unknown_key_names_the_file(tmp_path):
         SlamConfig.from_yaml(p)
 
 
-def test_auto_odometry_is_icp_for_planar_and_kiss_for_3d():
-    """method auto: our scan-to-map ICP for 2D lasers, KISS-ICP for 3D clouds; explicit choices are honoured."""
+def test_auto_odometry_is_our_icp_and_kiss_is_honoured():
+    """method auto: our scan-to-map ICP for 2D lasers and 3D clouds, each with its own settings; kiss gives
+    KISS-ICP for either."""
     cfg = SlamConfig()
-    assert isinstance(make_odometry(cfg, planar=True), IcpOdometry)
-    assert isinstance(make_odometry(cfg, planar=False), KissOdometry)
+    planar, spatial = make_odometry(cfg, planar=True), make_odometry(cfg, planar=False)
+    assert isinstance(planar, IcpOdometry) and isinstance(spatial, IcpOdometry)
+    assert planar.config == cfg.odometry.icp_2d and spatial.config == cfg.odometry.icp_3d
     kiss = SlamConfig.model_validate({"odometry": {"method": "kiss"}})
     assert isinstance(make_odometry(kiss, planar=True), KissOdometry)
+    assert isinstance(make_odometry(kiss, planar=False), KissOdometry)
 
 
 def _leaf_paths(model, prefix=()):  # type: ignore[no-untyped-def]

@@ -120,22 +120,25 @@ def test_kiss_on_kitti_returns_6dof_steps():
         assert s.prev_T_curr[0, 3] > 0.5
 
 
-@pytest.mark.xfail(reason="issue 25: against SemanticKITTI's poses, KISS-ICP's end-point drift over the 10 frames "
-                          "of kitti_mini 00 is 1.4 % (01: 1.0 %, 07: 3.5 %, 10: 19.6 %); its first steps err most",
-                   strict=False)
-def test_kiss_kitti_end_point_drift_below_one_percent():
-    """Acceptance: KISS-ICP end-point drift over kitti_mini's 10 frames of sequence 00 ≤ 1 % of the distance
-    travelled, against the SemanticKITTI poses (not the official ones, a placeholder over frames 0–14)."""
+@pytest.mark.parametrize("seq", ["00", "01"])
+def test_default_3d_odometry_end_point_drift_below_one_percent(seq):
+    """Acceptance (issue 25): the default 3D odometry's end-point drift over kitti_mini's 10 frames ≤ 1 % of the
+    distance travelled (6.7 m on 00, 9.0 m on 01; 07 and 10 creep 1–2 m, where a percentage says little), against
+    the SemanticKITTI poses (not the official ones, a placeholder over frames 0–14). KISS-ICP (``--odometry kiss``)
+    drifts 1.4 % and 1.0 % here, from its first steps on an empty map (docs/ODOMETRY.md)."""
     from slam.logs import open_log
+    from slam.pipeline.config import SlamConfig
+    from slam.pipeline.odometry_source import make_odometry
 
-    frames = list(open_log(shared_path("kitti_mini", "sequences", "00")).frames())
-    odo = KissOdometry(KissOdometryConfig(compute_covariance=False))
+    frames = list(open_log(shared_path("kitti_mini", "sequences", seq)).frames())
+    odo = make_odometry(SlamConfig(), planar=False)
     odo.run(frames)
     gt = np.array([f.ground_truth for f in frames])
     G = geo.relative(gt[0], gt)
     dist = np.sum(np.linalg.norm(np.diff(G[:, :3, 3], axis=0), axis=1))
-    err = np.linalg.norm(geo.relative(G[-1], odo.world_T_sensor)[:3, 3])
-    assert err / dist <= 0.01
+    est = geo.relative(odo.steps[0].world_T_sensor, odo.world_T_sensor)
+    err = np.linalg.norm(geo.relative(G[-1], est)[:3, 3])
+    assert dist > 5.0 and err / dist <= 0.01
 
 
 def test_icp_odometry_keeps_the_wheel_guess_when_icp_jumps_out_of_its_basin():

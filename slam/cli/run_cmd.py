@@ -165,7 +165,7 @@ def run(
     out: Path = typer.Option(Path("out/run"), "--out", help="Output folder (written atomically; an earlier run's "
                              "folder there is replaced whole)."),
     config: Path | None = typer.Option(None, "--config", help="YAML configuration (see config.yaml of any run)."),
-    odometry: Odometry | None = typer.Option(None, "--odometry", help="auto (default: KISS-ICP for 3D, our ICP for 2D), kiss or icp."),
+    odometry: Odometry | None = typer.Option(None, "--odometry", help="auto (default: our ICP, 2D and 3D), kiss (KISS-ICP) or icp."),
     backend: Backend | None = typer.Option(None, "--backend", help="gtsam (iSAM2 + batch LM) or chordal (batch)."),
     map_method: MapMethod | None = typer.Option(None, "--map", help="fastgpom, gpom, logodds or none."),
     topic: str | None = typer.Option(None, "--topic", help="Sensor topic (MCAP / ROS 1)."),

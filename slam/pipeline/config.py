@@ -52,8 +52,9 @@ def _merged(default: dict, given: dict) -> dict:
 
 class OdometryStageConfig(_Model):
     """Which registration source gives odometry: ``kiss`` (KISS-ICP), ``icp`` (our scan-to-map SVD-ICP)
-    or ``auto`` — KISS-ICP for 3D clouds, our ICP for planar scans (KISS-ICP's constant-velocity model
-    loses track of a planar laser where the robot turns in place; measurements in ``docs/ODOMETRY.md``).
+    or ``auto``, the measured choice per kind of frame — today our ICP for planar scans and 3D clouds alike
+    (KISS-ICP's constant-velocity model loses track of a planar laser where the robot turns in place, and on
+    real LiDAR frames its first steps from an empty map err by decimetres; ``docs/ODOMETRY.md``).
     Each source has its settings for planar scans and for 3D clouds (``icp_2d``, ``icp_3d``, ``kiss_2d``,
     ``kiss_3d``: ``registration.config``); every default is explained in ``docs/ODOMETRY.md`` with its
     evidence."""

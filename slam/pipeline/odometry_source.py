@@ -14,6 +14,6 @@ __all__ = ["make_odometry"]
 def make_odometry(config: SlamConfig, planar: bool) -> Odometry:
     """The configured odometry source for planar (2D laser) or 3D frames."""
     c = config.odometry
-    if c.method == "kiss" or (c.method == "auto" and not planar):
+    if c.method == "kiss":  # auto: our ICP, planar and 3D (docs/ODOMETRY.md has the measurements)
         return KissOdometry(c.kiss_2d if planar else c.kiss_3d, use_wheel_odometry=c.use_wheel_odometry)
     return IcpOdometry(c.icp_2d if planar else c.icp_3d, use_wheel_odometry=c.use_wheel_odometry)
