@@ -26,11 +26,11 @@ Array = NDArray[np.float64]
 
 from .kernels_grid3d import cell_index, knn3, normal_at
 
-__all__ = ["plane_icp_3d"]
+__all__ = ["CACHED", "cell_order", "evaluate_match", "plane_icp_3d", "regate", "unsort"]
 
 #: neighbours cached per source point by the matcher (registration.matching._CACHED), and the search bound as a
 #: multiple of the gate (registration.matching._BOUND_FACTOR), and the certificate margin (matching._TAU)
-_CACHED, _BOUND_FACTOR, _TAU = 8, 2.0, 1e-9
+CACHED, _BOUND_FACTOR, _TAU = 8, 2.0, 1e-9
 
 
 @njit(cache=True, inline="always")
@@ -68,7 +68,7 @@ def _slack2(gate, best, second, d1, radius, eps):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin, cell,
+def evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin, cell,
               dims, starts, order, bd, bi):  # pragma: no cover - compiled
     """Index of the target point nearest to (mx, my, mz) strictly within *gate*, else len(pts): from the cached
     candidates while the motion since the last search keeps them certain (registration.matching), else after a
@@ -159,7 +159,7 @@ def _apply_se3_left(xi, R, t):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _regate(gate, idx, slack2, near, d1, radius, n_tgt):  # pragma: no cover - compiled
+def regate(gate, idx, slack2, near, d1, radius, n_tgt):  # pragma: no cover - compiled
     """A new gate: each point's answer where its candidates were last compared, and its slack, from *near*
     (the cache must stay certain there under the new gate, else the point is compared again)."""
     for p in range(idx.shape[0]):
@@ -172,7 +172,19 @@ def _regate(gate, idx, slack2, near, d1, radius, n_tgt):  # pragma: no cover - c
 
 
 @njit(cache=True)
-def _unsort(idx, perm):  # pragma: no cover - compiled
+def cell_order(S, R, t, origin, cell, dims):  # pragma: no cover - compiled
+    """The order of the source points ``S (N, 3)`` moved by (R, t) by grid cell (stable): iterating in it, consecutive
+    points search the same cells (undo with :func:`unsort`)."""
+    key = np.empty(S.shape[0], np.int64)
+    for p in range(S.shape[0]):
+        key[p] = cell_index(R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0],
+                            R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1],
+                            R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2], origin, cell, dims)
+    return np.argsort(key, kind="mergesort")
+
+
+@njit(cache=True)
+def unsort(idx, perm):  # pragma: no cover - compiled
     out = np.empty_like(idx)
     for p in range(idx.shape[0]):
         out[perm[p]] = idx[p]
@@ -191,15 +203,10 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     *iterations*; 2 = singular normal equations."""
     n_tgt = pts.shape[0]
     # The source in the grid's cell order: consecutive points search, and read the normals of, the same cells.
-    key = np.empty(S.shape[0], np.int64)
-    for p in range(S.shape[0]):
-        key[p] = cell_index(R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0],
-                             R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1],
-                             R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2], origin, cell, dims)
-    perm = np.argsort(key, kind="mergesort")
+    perm = cell_order(S, R, t, origin, cell, dims)
     S = S[perm]
     n = S.shape[0]
-    kc = max(2, min(_CACHED, n_tgt))
+    kc = max(2, min(CACHED, n_tgt))
     R = R.copy()
     t = t.copy()
     idx = np.empty(n, np.int64)
@@ -227,7 +234,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     for stage in range(gates.shape[0]):
         gate = gates[stage]
         if not fresh:
-            _regate(gate, idx, slack2, near, d1, radius, n_tgt)
+            regate(gate, idx, slack2, near, d1, radius, n_tgt)
         converged = False
         while it < max_iterations:
             it += 1
@@ -241,14 +248,14 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 if ex * ex + ey * ey + ez * ez < slack2[p]:
                     q = idx[p]  # certainly the same match as where it was last evaluated
                 else:
-                    q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts,
+                    q = evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts,
                                   origin, cell, dims, starts, order, bd, bi)
                 idx[p] = q
                 if q < n_tgt:
                     n_ok += 1
             fresh = False
             if n_ok < min_inliers:
-                return R, t, it, False, 1, stage, n_ok, _unsort(idx, perm)
+                return R, t, it, False, 1, stage, n_ok, unsort(idx, perm)
             H = np.zeros((6, 6))
             g = np.zeros(6)
             J = np.empty(6)
@@ -286,7 +293,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                     H[a, b] = H[b, a]
             xi = _solve(H, -g)
             if xi[0] != xi[0]:  # NaN: singular
-                return R, t, it, False, 2, stage, n_ok, _unsort(idx, perm)
+                return R, t, it, False, 2, stage, n_ok, unsort(idx, perm)
             R, t = _apply_se3_left(xi, R, t)
             if (math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2]) < tol_t
                     and math.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5]) < tol_r):
@@ -295,7 +302,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     # The matches at the final pose and the last gate (the evaluation's), with their normals.
     if gate != gates[gates.shape[0] - 1]:  # the iteration cap ended an earlier stage
         gate = gates[gates.shape[0] - 1]
-        _regate(gate, idx, slack2, near, d1, radius, n_tgt)
+        regate(gate, idx, slack2, near, d1, radius, n_tgt)
     for p in range(n):
         mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
         my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
@@ -304,10 +311,10 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
         if ex * ex + ey * ey + ez * ez < slack2[p]:
             q = idx[p]
         else:
-            q = _evaluate(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin,
+            q = evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin,
                           cell, dims, starts, order, bd, bi)
         idx[p] = q
         if q < n_tgt and not have[q]:
             normal_at(q, normals, pts, cpts, origin, cell, dims, starts, order, k, bdk, bik)
             have[q] = True
-    return R, t, it, converged, 0, gates.shape[0] - 1, n, _unsort(idx, perm)
+    return R, t, it, converged, 0, gates.shape[0] - 1, n, unsort(idx, perm)
