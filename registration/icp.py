@@ -94,6 +94,8 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     d, n = tgt.dim, len(S)
     if d == 2 and alignment.COMPILED_2D and config.robust in alignment.ROBUST_CODES:
         return _icp_2d_compiled(S, tgt, T, config)
+    if d == 3 and alignment.COMPILED_3D and config.robust in alignment.ROBUST_CODES:
+        return _icp_3d_compiled(S, tgt, T, config)
     tpts = tgt.points
     n_tgt = len(tpts)
     # The matches are searched again only where the motion since the last search could change them.
@@ -172,5 +174,27 @@ def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, t
     matches[matches < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
+    gate = config.gates_m[-1]
+    return evaluate_matches(S, tgt, T, S @ R.T + t, matches, gate, config, it, converged)
+
+
+def _icp_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
+    """The 3D iterations of :func:`icp`, compiled (:func:`registration.kernels_icp3d_point.point_icp_3d`: the same
+    nearest neighbours on the target's cell grid instead of its k-d tree), then the same evaluation."""
+    from . import kernels_icp3d_point
+
+    g = tgt.grid3
+    repeat_is_fixed_point = config.robust == "none" and config.tol_translation_m > 0 and config.tol_rotation_rad > 0
+    R, t, it, converged, status, stage, pairs, matches = kernels_icp3d_point.point_icp_3d(
+        np.ascontiguousarray(S), T[:3, :3].copy(), T[:3, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
+        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
+        config.robust_scale_m, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
+    if status == 1:
+        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates_m[stage]} m "
+                                   f"(need {config.min_inliers})")
+    if status == 3:
+        raise DegenerateInputError("all correspondence weights are zero")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
     gate = config.gates_m[-1]
     return evaluate_matches(S, tgt, T, S @ R.T + t, matches, gate, config, it, converged)
