@@ -27,11 +27,12 @@ __all__ = ["COMPILED_2D", "COMPILED_3D", "ROBUST_CODES", "IcpResult", "as_target
            "prepare", "robust_weights"]
 
 #: 2D alignments (without a prior) run the compiled iterations of registration.kernels_icp; the numpy loops of
-#: registration.icp and registration.point_to_plane are the same algorithms, kept for 3D, for priors and as
+#: registration.icp and registration.point_to_plane are the same algorithms, kept for priors, trimming and as
 #: the reference the tests compare with.
 COMPILED_2D = True
-#: 3D point-to-plane alignments (without a prior) run the compiled iterations of registration.kernels_icp3d on a
-#: hashed voxel grid of the target instead of the numpy loop on its k-d tree (same algorithm, kept as the reference)
+#: 3D alignments run compiled iterations on a cell grid of the target instead of the numpy loops on its k-d tree
+#: (same algorithms, kept as the references): point-to-plane without a prior registration.kernels_icp3d,
+#: point-to-point registration.kernels_icp3d_point
 COMPILED_3D = True
 #: IcpConfig.robust → the compiled loop's code (trimming needs a partial sort: numpy loop)
 ROBUST_CODES = {"none": 0, "huber": 1, "cauchy": 2}

@@ -9,6 +9,7 @@ from .kernels_correlative import branch_and_bound, score_candidates
 from .kernels_icp import plane_icp_2d
 from .kernels_grid3d import VoxelGrid3D, normals_3d, voxel_first_3d
 from .kernels_icp3d import plane_icp_3d
+from .kernels_icp3d_point import point_icp_3d
 
 __all__ = ["compile_all"]
 
@@ -36,6 +37,8 @@ def compile_all() -> None:
     normals_3d(np.arange(len(cloud)), normals3, have3, g3.points, *g3.args(), 3)
     plane_icp_3d(cloud.copy(), np.eye(3), np.zeros(3), np.array([0.5]), 2, 1e-4, 1e-4, 2, 0.1, 3, normals3, have3, 3,
                  g3.points, *g3.args())
+    point_icp_3d(cloud.copy(), np.eye(3), np.zeros(3), np.array([0.5]), 2, 1e-4, 1e-4, 2, 0.1, 3, True, g3.points,
+                 *g3.args())
     voxel_first_3d(cloud, 0.5)
     branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1)
 

@@ -194,6 +194,11 @@ def _icp_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
                                    f"(need {config.min_inliers})")
     if status == 3:
         raise DegenerateInputError("all correspondence weights are zero")
+    if config.covariance_model == "plane":  # the evaluation's normals, from the same grid (no k-d tree to build)
+        from .kernels_grid3d import normals_3d
+
+        normals_3d(matches[matches < len(g.points)], tgt._normals, tgt._have, g.points, *g.args(),
+                   min(tgt.normal_neighbors, len(g.points)))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     gate = config.gates_m[-1]

@@ -1,4 +1,4 @@
-"""The compiled 3D kernels (registration.kernels_grid3d, kernels_icp3d) against the numpy / scipy implementations they replace
+"""The compiled 3D kernels (registration.kernels_grid3d, kernels_icp3d, kernels_icp3d_point) against the numpy / scipy implementations they replace
 on the LiDAR odometry's hot path: the same k nearest neighbours, normals, voxel subsampling and ICP poses."""
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from core import geometry as geo
 from core.errors import DegenerateInputError
 from registration import alignment, kernels_grid3d as k3
 from registration.config import IcpConfig
+from registration.icp import icp
 from registration.point_to_plane import icp_point_to_plane
 from registration.target import IcpTarget, estimate_normals
 
@@ -113,6 +114,52 @@ def test_both_3d_loops_refuse_too_few_pairs_and_a_singular_system(monkeypatch, c
     plane = np.column_stack([rng.uniform(-5, 5, (500, 2)), np.zeros(500)])  # slides in x, y and turns about z
     with pytest.raises(DegenerateInputError, match="singular normal equations"):
         icp_point_to_plane(plane, plane, None, IcpConfig(gates_m=(0.5,)))
+
+
+@pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("tol", [1e-7, 1e-10])
+def test_compiled_3d_point_icp_equals_the_numpy_loop(monkeypatch, robust, seed, tol):
+    """point_icp_3d against the numpy iterations of icp(): the same pose (to rounding), iterations, convergence,
+    inliers and covariance, coarse-to-fine gates, from a start 0.4 m / 3° off; unweighted with the repeated-match
+    fixed point, weighted to the increment tolerance."""
+    P, src, T = _street_pair(seed)
+    cfg = IcpConfig(gates_m=(1.5, 0.6, 0.3), max_iterations=60, tol_translation_m=tol, tol_rotation_rad=tol / 10,
+                    robust=robust, robust_scale_m=0.2, voxel_m=0.3)
+    fast = icp(src, IcpTarget(P), None, cfg)
+    monkeypatch.setattr(alignment, "COMPILED_3D", False)
+    ref = icp(src, IcpTarget(P), None, cfg)
+    assert np.abs(fast.transform - ref.transform).max() < 1e-10
+    assert (fast.iterations, fast.converged, fast.inliers) == (ref.iterations, ref.converged, ref.inliers)
+    assert fast.rmse == pytest.approx(ref.rmse, rel=1e-9)
+    np.testing.assert_allclose(fast.covariance, ref.covariance, rtol=1e-7, atol=1e-16)
+    assert np.abs(geo.se3_log(geo.relative(T, fast.transform))).max() < 0.01
+
+
+@pytest.mark.parametrize("max_iterations", [1, 4])
+def test_compiled_3d_point_icp_stops_at_the_iteration_cap_like_the_numpy_loop(monkeypatch, max_iterations):
+    """The cap ends an early stage: the evaluation still uses the last gate, in both loops."""
+    P, src, _ = _street_pair(4)
+    cfg = IcpConfig(gates_m=(1.5, 0.6, 0.3), max_iterations=max_iterations, voxel_m=0.3)
+    fast = icp(src, IcpTarget(P), None, cfg)
+    monkeypatch.setattr(alignment, "COMPILED_3D", False)
+    ref = icp(src, IcpTarget(P), None, cfg)
+    assert np.abs(fast.transform - ref.transform).max() < 1e-10
+    assert (fast.iterations, fast.converged, fast.inliers) == (ref.iterations, ref.converged, ref.inliers) \
+        == (max_iterations, False, ref.inliers)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_both_3d_point_icp_loops_refuse_too_few_pairs_and_zero_weights(monkeypatch, compiled):
+    monkeypatch.setattr(alignment, "COMPILED_3D", compiled)
+    P = _scene(np.random.default_rng(1), 3000)
+    with pytest.raises(DegenerateInputError, match=r"^ICP iteration 1: 0 pairs within 1.0 m \(need 10\)$"):
+        icp(P + 100.0, P, None, IcpConfig(gates_m=(1.0, 0.5)))
+    with pytest.raises(DegenerateInputError, match=r"^ICP iteration 1: 2 pairs within 1.0 m \(need 10\)$"):
+        icp(np.vstack([P[:2], P + 100.0]), P, None, IcpConfig(gates_m=(1.0, 0.5)))
+    # Cauchy weights of pairs ~1 cm apart underflow to 0 at a 1e-200 m scale
+    with pytest.raises(DegenerateInputError, match="^all correspondence weights are zero$"), np.errstate(over="ignore"):
+        icp(P + 0.01, P, None, IcpConfig(gates_m=(1.0,), robust="cauchy", robust_scale_m=1e-200))
 
 
 @pytest.mark.parametrize("size", [0.05, 0.3, 1.0])
