@@ -8,6 +8,10 @@ points, so the result is ``target_T_source`` directly. A stage ends when the pos
 below ``tol_translation`` / ``tol_rotation``; gates run coarse to fine; ``max_iterations`` caps
 the total. At the fixed point the covariance ``σ² (∂²f/∂δ²)⁻¹`` and the χ² verdict are computed
 (:mod:`registration.covariance`).
+
+With ``alignment.COMPILED_2D`` / ``COMPILED_3D`` (robust none / Huber / Cauchy) the same iterations run compiled on
+a grid of the target (:mod:`registration.kernels_icp`, :mod:`registration.kernels_icp3d_point`); the numpy loop
+below stays as the reference the tests compare them with (trimming runs it).
 """
 
 from __future__ import annotations
