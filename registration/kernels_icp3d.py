@@ -26,7 +26,7 @@ Array = NDArray[np.float64]
 
 from .kernels_grid3d import cell_index, knn3, normal_at
 
-__all__ = ["CACHED", "cell_order", "evaluate_match", "plane_icp_3d", "regate", "unsort"]
+__all__ = ["CACHED", "cell_order", "evaluate_match", "match_pass", "plane_icp_3d", "regate", "unsort"]
 
 #: neighbours cached per source point by the matcher (registration.matching._CACHED), and the search bound as a
 #: multiple of the gate (registration.matching._BOUND_FACTOR), and the certificate margin (matching._TAU)
@@ -158,6 +158,30 @@ def _apply_se3_left(xi, R, t):  # pragma: no cover - compiled
     return E @ R, E @ t + et
 
 
+@njit(cache=True, inline="always")
+def match_pass(S, R, t, moved, idx, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin,
+               cell, dims, starts, order, bd, bi, n_tgt):  # pragma: no cover - compiled
+    """One matching pass of an iteration: every source point of *S* moved by (*R*, *t*) into *moved*, its match
+    into *idx* — kept without comparing candidates while the point stays within its slack of where it was last
+    evaluated, else :func:`evaluate_match` — and the number matched within the *gate* returned."""
+    n_ok = 0
+    for p in range(S.shape[0]):
+        mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
+        my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
+        mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
+        moved[p, 0], moved[p, 1], moved[p, 2] = mx, my, mz
+        ex, ey, ez = mx - held[p, 0], my - held[p, 1], mz - held[p, 2]
+        if ex * ex + ey * ey + ez * ez < slack2[p]:
+            q = idx[p]  # certainly the same match as where it was last evaluated
+        else:
+            q = evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts,
+                               origin, cell, dims, starts, order, bd, bi)
+        idx[p] = q
+        if q < n_tgt:
+            n_ok += 1
+    return n_ok
+
+
 @njit(cache=True)
 def regate(gate, idx, slack2, near, d1, radius, n_tgt):  # pragma: no cover - compiled
     """A new gate: each point's answer where its candidates were last compared, and its slack, from *near*
@@ -238,21 +262,8 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
         converged = False
         while it < max_iterations:
             it += 1
-            n_ok = 0
-            for p in range(n):
-                mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
-                my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
-                mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
-                moved[p, 0], moved[p, 1], moved[p, 2] = mx, my, mz
-                ex, ey, ez = mx - held[p, 0], my - held[p, 1], mz - held[p, 2]
-                if ex * ex + ey * ey + ez * ez < slack2[p]:
-                    q = idx[p]  # certainly the same match as where it was last evaluated
-                else:
-                    q = evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts,
-                                  origin, cell, dims, starts, order, bd, bi)
-                idx[p] = q
-                if q < n_tgt:
-                    n_ok += 1
+            n_ok = match_pass(S, R, t, moved, idx, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near,
+                              pts, cpts, origin, cell, dims, starts, order, bd, bi, n_tgt)
             fresh = False
             if n_ok < min_inliers:
                 return R, t, it, False, 1, stage, n_ok, unsort(idx, perm)

@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .kernels_icp3d import CACHED, cell_order, evaluate_match, regate, unsort
+from .kernels_icp3d import CACHED, cell_order, match_pass, regate, unsort
 
 __all__ = ["point_icp_3d"]
 
@@ -83,21 +83,8 @@ def point_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
         converged = False
         while it < max_iterations:
             it += 1
-            n_ok = 0
-            for p in range(n):
-                mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
-                my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
-                mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
-                moved[p, 0], moved[p, 1], moved[p, 2] = mx, my, mz
-                ex, ey, ez = mx - held[p, 0], my - held[p, 1], mz - held[p, 2]
-                if ex * ex + ey * ey + ez * ez < slack2[p]:
-                    q = idx[p]  # certainly the same match as where it was last evaluated
-                else:
-                    q = evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near,
-                                       pts, cpts, origin, cell, dims, starts, order, bd, bi)
-                idx[p] = q
-                if q < n_tgt:
-                    n_ok += 1
+            n_ok = match_pass(S, R, t, moved, idx, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near,
+                              pts, cpts, origin, cell, dims, starts, order, bd, bi, n_tgt)
             fresh = False
             if repeat_is_fixed_point and have_solved:
                 same = True
@@ -166,15 +153,6 @@ def point_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 converged = True
                 break
     # The matches at the final pose and the last gate (the evaluation's).
-    for p in range(n):
-        mx = R[0, 0] * S[p, 0] + R[0, 1] * S[p, 1] + R[0, 2] * S[p, 2] + t[0]
-        my = R[1, 0] * S[p, 0] + R[1, 1] * S[p, 1] + R[1, 2] * S[p, 2] + t[1]
-        mz = R[2, 0] * S[p, 0] + R[2, 1] * S[p, 1] + R[2, 2] * S[p, 2] + t[2]
-        ex, ey, ez = mx - held[p, 0], my - held[p, 1], mz - held[p, 2]
-        if ex * ex + ey * ey + ez * ez < slack2[p]:
-            q = idx[p]
-        else:
-            q = evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts,
-                               origin, cell, dims, starts, order, bd, bi)
-        idx[p] = q
+    match_pass(S, R, t, moved, idx, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin,
+               cell, dims, starts, order, bd, bi, n_tgt)
     return R, t, it, converged, 0, gates.shape[0] - 1, n, unsort(idx, perm)
