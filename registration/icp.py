@@ -170,16 +170,9 @@ def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
         np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
         config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
         config.robust_scale_m, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
-    if status == 1:
-        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates_m[stage]} m "
-                                   f"(need {config.min_inliers})")
-    if status == 3:
-        raise DegenerateInputError("all correspondence weights are zero")
-    T = np.eye(4)
-    T[:2, :2], T[:2, 3] = R, t
+    _refuse(status, it, pairs, stage, config)
     matches[matches < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
-    gate = config.gates_m[-1]
-    return evaluate_matches(S, tgt, T, S @ R.T + t, matches, gate, config, it, converged)
+    return _evaluated(S, tgt, R, t, matches, config, it, converged)
 
 
 def _icp_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
@@ -193,17 +186,28 @@ def _icp_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
         np.ascontiguousarray(S), T[:3, :3].copy(), T[:3, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
         config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
         config.robust_scale_m, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
-    if status == 1:
-        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates_m[stage]} m "
-                                   f"(need {config.min_inliers})")
-    if status == 3:
-        raise DegenerateInputError("all correspondence weights are zero")
+    _refuse(status, it, pairs, stage, config)
     if config.covariance_model == "plane":  # the evaluation's normals, from the same grid (no k-d tree to build)
         from .kernels_grid3d import normals_3d
 
         normals_3d(matches[matches < len(g.points)], tgt._normals, tgt._have, g.points, *g.args(),
                    min(tgt.normal_neighbors, len(g.points)))
+    return _evaluated(S, tgt, R, t, matches, config, it, converged)
+
+
+def _refuse(status: int, it: int, pairs: int, stage: int, config: IcpConfig) -> None:
+    """The numpy loop's errors for a compiled loop's *status* (1: too few pairs, 3: every weight zero)."""
+    if status == 1:
+        raise DegenerateInputError(f"ICP iteration {it}: {pairs} pairs within {config.gates_m[stage]} m "
+                                   f"(need {config.min_inliers})")
+    if status == 3:
+        raise DegenerateInputError("all correspondence weights are zero")
+
+
+def _evaluated(S: Array, tgt: IcpTarget, R: Array, t: Array, matches: NDArray[np.intp], config: IcpConfig, it: int,
+               converged: bool) -> IcpResult:
+    """A compiled loop's pose (*R*, *t*) and final *matches* through the numpy loop's evaluation."""
+    d = len(t)
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    gate = config.gates_m[-1]
-    return evaluate_matches(S, tgt, T, S @ R.T + t, matches, gate, config, it, converged)
+    T[:d, :d], T[:d, 3] = R, t
+    return evaluate_matches(S, tgt, T, S @ R.T + t, matches, config.gates_m[-1], config, it, converged)

@@ -121,11 +121,7 @@ def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
         config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
         config.robust_scale_m, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
         g.points, *g.args())
-    if status == 1:
-        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: {pairs} pairs within "
-                                   f"{config.gates_m[stage]} m (need {config.min_inliers})")
-    if status == 2:
-        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations")
+    _refuse(status, it, pairs, stage, config)
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, t
     moved = S @ R.T + t
@@ -144,11 +140,7 @@ def _icp_plane_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
         config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
         config.robust_scale_m, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
         g.points, *g.args())
-    if status == 1:
-        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: {pairs} pairs within "
-                                   f"{config.gates_m[stage]} m (need {config.min_inliers})")
-    if status == 2:
-        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations")
+    _refuse(status, it, pairs, stage, config)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     moved = S @ R.T + t
@@ -191,3 +183,12 @@ def _apply_se2_left(xi: Array, R: Array, t: Array) -> tuple[Array, Array]:
     ex, ey = a * rx - b * ry, b * rx + a * ry
     E = np.array([[c, -s], [s, c]])
     return E @ R, E @ t + (ex, ey)
+
+
+def _refuse(status: int, it: int, pairs: int, stage: int, config: IcpConfig) -> None:
+    """The numpy loop's errors for a compiled loop's *status* (1: too few pairs, 2: singular normal equations)."""
+    if status == 1:
+        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: {pairs} pairs within "
+                                   f"{config.gates_m[stage]} m (need {config.min_inliers})")
+    if status == 2:
+        raise DegenerateInputError(f"point-to-plane ICP iteration {it}: singular normal equations")
