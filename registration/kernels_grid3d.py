@@ -9,7 +9,7 @@ cells around the query, then cubic shells of cells around its own, skipping cell
 found; once every unvisited cell is farther (the faces of the visited block), the search ends exactly (the 2D
 grid of :mod:`registration.kernels` does the same with square rings). A dense grid over a 200 m × 200 m × 20 m
 local map holds 800k cells at 1 m and builds in ~10 ms for 270k points; a hash of the occupied cells was slower
-to build and to probe (measured on kitti_mini).
+to build and to probe (measured on real LiDAR frames; docs/ODOMETRY.md, "3D").
 
 Frames: every argument is in one frame; metres.
 """
