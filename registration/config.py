@@ -173,3 +173,8 @@ class IcpOdometryConfig(_Frozen):
     #: twice the distance and every heading, around the guess and around the last pose; its result is
     #: kept when it scores better by the same factor. None = never.
     unguided_escalation: float | None = Field(0.8, gt=0.0, le=1.0)
+    #: The first registration without wheel odometry has no velocity to start from: a log that begins in
+    #: motion is a whole scan interval's travel away from the identity guess (3 m at 30 m/s and 10 Hz),
+    #: beyond the first gate. That step runs this gate before the configured ones (m; KISS-ICP's first
+    #: frames correspond over 3 × its 2 m initial threshold); None = the configured gates alone.
+    first_step_gate_m: float | None = Field(None, gt=0.0)

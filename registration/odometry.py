@@ -302,6 +302,14 @@ class IcpOdometry(Odometry):
         self._unguided_scores.append(found.score)
         return found.transform if found.score > found.guess_score else guess
 
+    def _first_step_gates(self) -> IcpConfig | None:
+        """The ICP settings with ``first_step_gate_m`` before the configured gates, for the first registration
+        (no increment estimated yet, so the constant-velocity guess is the identity); None otherwise."""
+        c = self.config
+        if c.first_step_gate_m is None or len(self.steps) != 1 or c.first_step_gate_m <= c.icp.gates_m[0]:
+            return None
+        return c.icp.model_copy(update={"gates_m": (c.first_step_gate_m,) + tuple(c.icp.gates_m)})
+
     def _disagree(self, a: Array, b: Array) -> bool:
         """Increments *a* and *b* differ by more than ``alternative_start_m`` or ``alternative_start_rad``."""
         c = self.config
@@ -326,13 +334,15 @@ class IcpOdometry(Odometry):
                 return inside_alt
         return res_alt.fitness >= res.fitness + self.config.alternative_start_min_gain
 
-    def _align(self, pts: Array, target: IcpTarget, start: Array, prior: PosePrior | None = None):  # type: ignore[no-untyped-def]
+    def _align(self, pts: Array, target: IcpTarget, start: Array, prior: PosePrior | None = None,
+               icp_config: IcpConfig | None = None):  # type: ignore[no-untyped-def]
         """ICP result from *start* (with the *prior*, point-to-plane only), or None when there are too few pairs."""
         cfg = self.config
+        ic = icp_config or cfg.icp
         try:
             if cfg.point_to_plane:
-                return icp_point_to_plane(pts, target, start, cfg.icp, prior=prior)
-            return icp(pts, target, start, cfg.icp)
+                return icp_point_to_plane(pts, target, start, ic, prior=prior)
+            return icp(pts, target, start, ic)
         except DegenerateInputError:
             return None
 
@@ -366,7 +376,7 @@ class IcpOdometry(Odometry):
         alt = self._alternative_start(frame, prediction)
         # The wheels as a prior only where they are smooth: lumpy ones are a wrong guess.
         prior = self._prior(guess, prediction, frame.dim) if guided and alt is None else None
-        res = self._align(pts, target, guess, prior)
+        res = self._align(pts, target, guess, prior, None if guided else self._first_step_gates())
         if alt is not None:
             self.alternative_starts += 1
             start = self._pose @ alt

@@ -35,7 +35,7 @@ PLANAR_ICP = IcpOdometryConfig(
 #: 3D clouds, our ICP: coarse-to-fine gates on 0.5 m voxels against a 0.3 m local map.
 SPATIAL_ICP = PLANAR_ICP.model_copy(update={
     "icp": IcpConfig(gates_m=(1.5, 0.6, 0.3), voxel_m=0.5, robust="cauchy", robust_scale_m=0.2),
-    "map_voxel_m": 0.3, "max_range_m": 100.0, "unguided_window_m": None})
+    "map_voxel_m": 0.3, "max_range_m": 100.0, "unguided_window_m": None, "first_step_gate_m": 6.0})
 #: KISS-ICP: its own defaults for 3D, the indoor planar ones (``KissOdometryConfig.planar_default``) to
 #: 30 m for planar scans; the pipeline computes its own keyframe-edge covariance, so KISS's per-scan one is off.
 PLANAR_KISS = KissOdometryConfig.planar_default().model_copy(update={"max_range_m": 30.0, "compute_covariance": False})
