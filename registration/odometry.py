@@ -227,6 +227,9 @@ class IcpOdometry(Odometry):
         self._pyramid = None  # likelihood pyramid of the current map (the search without wheel odometry), likewise
         self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
         self._prev_wheel: tuple[Array, float] | None = None  # previous wheel increment and its interval (s)
+        g = self.config.first_step_gate_m  # the first registration without wheels: a wider gate first
+        self._first_icp = (self.config.icp.model_copy(update={"gates_m": (g,) + tuple(self.config.icp.gates_m)})
+                           if g is not None and g > self.config.icp.gates_m[0] else None)
 
     def _constant_velocity(self, dt: float) -> Array:
         """The last estimated increment, scaled to this scan interval of *dt* seconds across a gap in the log
@@ -302,14 +305,6 @@ class IcpOdometry(Odometry):
         self._unguided_scores.append(found.score)
         return found.transform if found.score > found.guess_score else guess
 
-    def _first_step_gates(self) -> IcpConfig | None:
-        """The ICP settings with ``first_step_gate_m`` before the configured gates, for the first registration
-        (no increment estimated yet, so the constant-velocity guess is the identity); None otherwise."""
-        c = self.config
-        if c.first_step_gate_m is None or len(self.steps) != 1 or c.first_step_gate_m <= c.icp.gates_m[0]:
-            return None
-        return c.icp.model_copy(update={"gates_m": (c.first_step_gate_m,) + tuple(c.icp.gates_m)})
-
     def _disagree(self, a: Array, b: Array) -> bool:
         """Increments *a* and *b* differ by more than ``alternative_start_m`` or ``alternative_start_rad``."""
         c = self.config
@@ -338,11 +333,10 @@ class IcpOdometry(Odometry):
                icp_config: IcpConfig | None = None):  # type: ignore[no-untyped-def]
         """ICP result from *start* (with the *prior*, point-to-plane only), or None when there are too few pairs."""
         cfg = self.config
-        ic = icp_config or cfg.icp
         try:
             if cfg.point_to_plane:
-                return icp_point_to_plane(pts, target, start, ic, prior=prior)
-            return icp(pts, target, start, ic)
+                return icp_point_to_plane(pts, target, start, icp_config or cfg.icp, prior=prior)
+            return icp(pts, target, start, icp_config or cfg.icp)
         except DegenerateInputError:
             return None
 
@@ -376,7 +370,8 @@ class IcpOdometry(Odometry):
         alt = self._alternative_start(frame, prediction)
         # The wheels as a prior only where they are smooth: lumpy ones are a wrong guess.
         prior = self._prior(guess, prediction, frame.dim) if guided and alt is None else None
-        res = self._align(pts, target, guess, prior, None if guided else self._first_step_gates())
+        first = self._first_icp if not guided and len(self.steps) == 1 else None  # no increment estimated yet
+        res = self._align(pts, target, guess, prior, first)
         if alt is not None:
             self.alternative_starts += 1
             start = self._pose @ alt
