@@ -249,7 +249,7 @@ def bench_kitti_mini(reps: int) -> dict:
     start), KISS-ICP odometry's steps over each sequence (its default 3D configuration) and the pipeline's
     default 3D odometry's (our scan-to-map ICP); plus the
     point-to-point pairs of the fixed-point and time comparison (voxel 0.2 m, 1 m gate, identity start)."""
-    from registration.odometry import KissOdometry
+    from registration.odometry_kiss import KissOdometry
     from slam.logs import open_log
     from slam.pipeline.config import SlamConfig
     from slam.pipeline.odometry_source import make_odometry
@@ -582,7 +582,7 @@ def bench_nees(trials: int = 200, sigma: float = 0.01) -> dict:
 # ----------------------------------------------------------------------------- odometry
 
 def bench_kiss_kitti(frames) -> dict:
-    from registration.odometry import KissOdometry
+    from registration.odometry_kiss import KissOdometry
 
     odo = KissOdometry(KissOdometryConfig())
     t0 = time.perf_counter()
@@ -612,7 +612,8 @@ def _relations(stamps, poses):
 def bench_intel_odometry(frames, icp_odometry: bool) -> dict:
     from kiss_icp.kiss_icp import KissICP
 
-    from registration.odometry import IcpOdometry, KissOdometry
+    from registration.odometry import IcpOdometry
+    from registration.odometry_kiss import KissOdometry
 
     out = {"scans": len(frames)}
     stamps = np.array([f.stamp for f in frames])

@@ -1,4 +1,5 @@
-"""Scan odometry with one interface for two sources: KISS-ICP and our scan-to-local-map SVD-ICP.
+"""Scan odometry with one interface for two sources: KISS-ICP (:mod:`registration.odometry_kiss`) and our
+scan-to-local-map SVD-ICP (here).
 
 Feed :class:`~core.frame.Frame` objects in time order to ``update``; each call returns an
 :class:`OdometryStep` with ``world_T_sensor`` (4×4; *world* is the sensor frame of the first scan),
@@ -12,7 +13,7 @@ When a frame carries wheel odometry (``Frame.odom``) and the odometry was built 
 predicted increment ``base_T_sensor⁻¹ · odom_prev⁻¹ · odom_curr · base_T_sensor`` is the initial
 guess; otherwise a constant-velocity guess (the last increment) is used.
 
-* :class:`KissOdometry` — KISS-ICP (Vizzo et al., "KISS-ICP: In Defense of Point-to-Point ICP",
+* :class:`~registration.odometry_kiss.KissOdometry` — KISS-ICP (Vizzo et al., "KISS-ICP: In Defense of Point-to-Point ICP",
   RA-L 2023) through ``kiss_icp.kiss_icp.KissICP``; planar scans become z = 0 points, deskewing off.
   KISS-ICP gives no covariance: it is computed by :func:`registration.alignment.evaluate_alignment` of the
   current scan against the previous one at the KISS pose (plane model, gate 3σ of KISS's threshold).
@@ -31,11 +32,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from core import geometry as geo
-from core.errors import DegenerateInputError, GeometryError
+from core.errors import DegenerateInputError
 from core.frame import Frame
 
-from .alignment import evaluate_alignment
-from .config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
+from .config import IcpConfig, IcpOdometryConfig
 from .icp import icp
 from .point_to_plane import PosePrior, icp_point_to_plane
 from .target import IcpTarget
@@ -47,7 +47,7 @@ Array = NDArray[np.float64]
 #: _GAP_RATIO either way, at most _MAX_INTERVAL_RATIO) of regular stamps (_REGULAR_SPREAD, _constant_velocity)
 _GAP_RATIO, _MAX_INTERVAL_RATIO, _REGULAR_SPREAD = 2.0, 20.0, 0.25
 
-__all__ = ["OdometryStep", "Odometry", "KissOdometry", "IcpOdometry", "wheel_increment"]
+__all__ = ["OdometryStep", "Odometry", "IcpOdometry", "planar_pose", "wheel_increment"]
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ def wheel_increment(prev: Frame, curr: Frame) -> Array | None:
     return geo.inverse(B) @ geo.relative(prev.odom, curr.odom) @ B
 
 
-def _planar(T: Array) -> Array:
+def planar_pose(T: Array) -> Array:
     """Project a pose on SE(2) (z = 0, yaw only) — for planar scans fed to a 6-DoF registration."""
     th = np.arctan2(T[1, 0], T[0, 0])
     c, s = np.cos(th), np.sin(th)
@@ -147,58 +147,6 @@ class Odometry(abc.ABC):
 
     def stamps(self) -> Array:
         return np.array([s.stamp for s in self.steps], dtype=np.float64)
-
-
-class KissOdometry(Odometry):
-    """KISS-ICP odometry for 3D clouds and planar scans (z = 0), config mapped from ours."""
-
-    def __init__(self, config: KissOdometryConfig | None = None, use_wheel_odometry: bool = True) -> None:
-        super().__init__(use_wheel_odometry)
-        self.config = config or KissOdometryConfig()
-        self._kiss = None
-        self._planar: bool | None = None
-        self._prev_world: Array | None = None
-
-    @property
-    def kiss(self):
-        """The wrapped ``kiss_icp.kiss_icp.KissICP`` (None before the first frame)."""
-        return self._kiss
-
-    def update(self, frame: Frame) -> OdometryStep:
-        from kiss_icp.kiss_icp import KissICP
-
-        if self._kiss is None:
-            self._planar = frame.is_planar
-            self._kiss = KissICP(self.config.to_kiss(planar=self._planar))
-        elif frame.is_planar != self._planar:
-            raise GeometryError(f"{frame.source or 'frame'} {frame.index}: mixed planar and 3D frames")
-        kiss = self._kiss
-        if self._prev_frame is not None:
-            # KISS-ICP predicts last_pose · last_delta; seeding last_delta injects our guess.
-            kiss.last_delta = self._guess(frame, self.use_wheel_odometry)
-        sigma = float(kiss.adaptive_threshold.get_threshold())
-        pts3 = frame.points_3d()
-        _, source = kiss.register_frame(pts3, np.zeros(0))
-        pose = np.array(kiss.last_pose, dtype=np.float64)
-        if self._planar:
-            pose = _planar(pose)
-        d = frame.dim
-        cov = accepted = None
-        cfg = self.config
-        if cfg.compute_covariance:
-            src = np.asarray(source, dtype=np.float64)[:, :d]
-            if self._prev_world is not None and len(src) >= 3:
-                icfg = IcpConfig(gates_m=(3.0 * sigma,), sigma_m=cfg.covariance_sigma_m, covariance_model="plane",
-                                 workers=1 if d == 2 else -1)
-                try:
-                    tgt = IcpTarget(self._prev_world, workers=icfg.workers)
-                    res = evaluate_alignment(src, tgt, pose, icfg.gates_m[0], icfg)
-                    cov, accepted = res.covariance, res.accepted if cfg.covariance_sigma_m else None
-                except DegenerateInputError:
-                    cov = None
-            vs = kiss.config.mapping.voxel_size * 0.5
-            self._prev_world = geo.transform_points(pose, voxel_downsample(frame.points, vs))
-        return self._emit(frame, pose, cov, accepted)
 
 
 class IcpOdometry(Odometry):
@@ -286,7 +234,7 @@ class IcpOdometry(Odometry):
             self._pyramid = correlative.LikelihoodPyramid(np.vstack(self._map)[:, :2], cfg.unguided_resolution_m,
                                                           cfg.unguided_resolution_m, levels=levels)
         try:
-            found = correlative.match(pts[:, :2], self._pyramid, _planar(guess), cfg.unguided_window_m,
+            found = correlative.match(pts[:, :2], self._pyramid, planar_pose(guess), cfg.unguided_window_m,
                                       cfg.unguided_window_rad or 0.0)
             typical = float(np.median(self._unguided_scores)) if len(self._unguided_scores) >= 5 else None
             if cfg.unguided_escalation is not None and typical is not None and found.score < cfg.unguided_escalation * typical:
@@ -295,7 +243,7 @@ class IcpOdometry(Odometry):
                 # seen the other way round scores a little better than a poor but right pose.
                 bar = found.score / cfg.unguided_escalation
                 for centre in (guess, self._pose):
-                    wide = correlative.match(pts[:, :2], self._pyramid, _planar(centre), 2 * cfg.unguided_window_m,
+                    wide = correlative.match(pts[:, :2], self._pyramid, planar_pose(centre), 2 * cfg.unguided_window_m,
                                              np.pi, min_score=bar)
                     if wide.score > bar:
                         found = correlative.CorrelativeResult(wide.transform, wide.score, found.guess_score)
@@ -322,7 +270,7 @@ class IcpOdometry(Odometry):
         if res is None:
             return True
         if guided:
-            flat = _planar if planar else (lambda T: T)
+            flat = planar_pose if planar else (lambda T: T)
             inside, inside_alt = (not self._too_far(start, flat(res.transform)),
                                   not self._too_far(alt_start, flat(res_alt.transform)))
             if inside != inside_alt:
@@ -384,7 +332,7 @@ class IcpOdometry(Odometry):
         else:
             pose, cov, accepted = res.transform, res.covariance, res.accepted if cfg.icp.sigma_m else None
         if frame.is_planar:
-            pose = _planar(pose)
+            pose = planar_pose(pose)
         if guided and res is not None and self._too_far(guess, pose):
             # ICP left the basin of its own start. Judged against either start, a slide along a
             # corridor passed and fed the next constant-velocity start (docs/ODOMETRY.md).

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from core.errors import ConfigError
-from registration.odometry import IcpOdometry, KissOdometry
+from registration.odometry import IcpOdometry
+from registration.odometry_kiss import KissOdometry
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.odometry_source import make_odometry
 

@@ -8,7 +8,8 @@ import pytest
 from core import geometry as geo
 from core.frame import Frame
 from registration.config import IcpConfig, IcpOdometryConfig, KissOdometryConfig
-from registration.odometry import IcpOdometry, KissOdometry, OdometryStep, wheel_increment
+from registration.odometry import IcpOdometry, OdometryStep, wheel_increment
+from registration.odometry_kiss import KissOdometry
 from tests.conftest import DATA, shared_path
 
 

@@ -4,7 +4,8 @@ front end, its stage process and the loop replay."""
 
 from __future__ import annotations
 
-from registration.odometry import IcpOdometry, KissOdometry, Odometry
+from registration.odometry import IcpOdometry, Odometry
+from registration.odometry_kiss import KissOdometry
 
 from .config import SlamConfig
 
