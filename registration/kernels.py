@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["PointGrid", "nearest_point", "nearest_within", "knn_normal", "normals_2d", "cached_nearest"]
+__all__ = ["PointGrid", "nearest_point", "nearest_within", "knn_normal", "normals_2d", "cached_nearest", "insert_best",
+           "same_matches"]
 
 # Grids larger than this many cells get coarser cells (a far target of a long-range laser spans ~160 m).
 MAX_CELLS = 4_000_000
@@ -52,6 +53,29 @@ class PointGrid:
     def args(self) -> tuple:
         """The grid as the positional arguments every kernel takes after the points."""
         return (self.origin[0], self.origin[1], self.cell, self.nx, self.ny, self.order, self.starts)
+
+
+@njit(cache=True, inline="always")
+def same_matches(idx, solved):  # pragma: no cover - compiled
+    """Whether every point's match *idx* equals the one the current pose was solved from (*solved*): the
+    closed-form step would return the same pose, the unweighted loops' fixed point."""
+    for p in range(idx.shape[0]):
+        if idx[p] != solved[p]:
+            return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def insert_best(bd, bi, k, d2, index):  # pragma: no cover - compiled
+    """Insert the squared distance *d2* of point *index* into the ascending *k* best (*bd*, *bi*), dropping the
+    last (the caller checked that *d2* beats it)."""
+    s = k - 1
+    while s > 0 and bd[s - 1] > d2:
+        bd[s] = bd[s - 1]
+        bi[s] = bi[s - 1]
+        s -= 1
+    bd[s] = d2
+    bi[s] = index
 
 
 @njit(cache=True)
@@ -150,14 +174,8 @@ def knn_normal(p, pts, ox, oy, cell, nx, ny, order, starts, k, bd, bi):  # pragm
                         dx = pts[o, 0] - x
                         dy = pts[o, 1] - y
                         d2 = dx * dx + dy * dy
-                        if d2 < bd[k - 1]:  # insert into the sorted k best
-                            s = k - 1
-                            while s > 0 and bd[s - 1] > d2:
-                                bd[s] = bd[s - 1]
-                                bi[s] = bi[s - 1]
-                                s -= 1
-                            bd[s] = d2
-                            bi[s] = o
+                        if d2 < bd[k - 1]:
+                            insert_best(bd, bi, k, d2, o)
                 j += 1 if edge_i else 2 * r
         reach = _covered(x, y, ci, cj, r, ox, oy, cell)
         if bi[k - 1] >= 0 and bd[k - 1] <= reach * reach:

@@ -22,6 +22,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from .kernels import insert_best
+
 Array = NDArray[np.float64]
 
 __all__ = ["VoxelGrid3D", "cell_index", "knn3", "normal_at", "normals_3d", "voxel_first_3d"]
@@ -137,13 +139,7 @@ def _visit(c, x, y, z, cpts, order, starts, k, b2, bd, bi):  # pragma: no cover 
         uz = cpts[q, 2] - z
         d2 = ux * ux + uy * uy + uz * uz
         if d2 < lim:
-            s = k - 1
-            while s > 0 and bd[s - 1] > d2:
-                bd[s] = bd[s - 1]
-                bi[s] = bi[s - 1]
-                s -= 1
-            bd[s] = d2
-            bi[s] = order[q]
+            insert_best(bd, bi, k, d2, order[q])
             lim = min(bd[k - 1], b2)
 
 

@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .kernels import knn_normal, nearest_point
+from .kernels import knn_normal, nearest_point, same_matches
 
 __all__ = ["point_icp_2d", "plane_icp_2d"]
 
@@ -124,15 +124,9 @@ def point_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
         while it < max_iterations:
             it += 1
             n_ok = _match_all(S, R, t, idx, pts, ox, oy, cell, nx, ny, order, starts, gates[stage])
-            if repeat_is_fixed_point and have_solved:
-                same = True
-                for p in range(n):
-                    if idx[p] != solved[p]:
-                        same = False
-                        break
-                if same:
-                    converged = True
-                    break
+            if repeat_is_fixed_point and have_solved and same_matches(idx, solved):
+                converged = True
+                break
             if n_ok < min_inliers:
                 return R, t, it, False, 1, stage, idx, n_ok
             sw = px = py = qx = qy = 0.0  # weighted centroids of the matched source and target points

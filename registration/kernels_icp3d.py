@@ -26,7 +26,7 @@ Array = NDArray[np.float64]
 
 from .kernels_grid3d import cell_index, knn3, normal_at
 
-__all__ = ["CACHED", "cell_order", "evaluate_match", "match_pass", "plane_icp_3d", "regate", "unsort"]
+__all__ = ["CACHED", "cell_order", "evaluate_match", "match_pass", "matcher_arrays", "plane_icp_3d", "regate", "unsort"]
 
 #: neighbours cached per source point by the matcher (registration.matching._CACHED), and the search bound as a
 #: multiple of the gate (registration.matching._BOUND_FACTOR), and the certificate margin (matching._TAU)
@@ -158,6 +158,18 @@ def _apply_se3_left(xi, R, t):  # pragma: no cover - compiled
     return E @ R, E @ t + et
 
 
+@njit(cache=True)
+def matcher_arrays(n, kc):  # pragma: no cover - compiled
+    """The cached matcher's state for *n* source points and *kc* cached candidates: the match ``idx``; where the
+    candidates were searched (``at``), the nearest's distance ``d1`` and the cache's ``radius``; the candidates
+    (``cand``, ``cand_xyz``) and the search's scratch (``bd``, ``bi``); where each match was last evaluated
+    (``held``) and the squared distance the point may move from there keeping it (``slack2``, −1: none yet);
+    ``near`` (nearest candidate there, its distance, the second's, motion since the search); ``moved``."""
+    return (np.empty(n, np.int64), np.empty((n, 3)), np.empty(n), np.empty(n), np.empty((n, kc), np.int64),
+            np.empty((n, kc, 3)), np.empty(kc), np.empty(kc, np.int64), np.zeros((n, 3)), np.full(n, -1.0),
+            np.empty((n, 4)), np.empty((n, 3)))
+
+
 @njit(cache=True, inline="always")
 def match_pass(S, R, t, moved, idx, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near, pts, cpts, origin,
                cell, dims, starts, order, bd, bi, n_tgt):  # pragma: no cover - compiled
@@ -233,25 +245,13 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     kc = max(2, min(CACHED, n_tgt))
     R = R.copy()
     t = t.copy()
-    idx = np.empty(n, np.int64)
-    at = np.empty((n, 3))
-    d1 = np.empty(n)
-    radius = np.empty(n)
-    cand = np.empty((n, kc), np.int64)
-    cand_xyz = np.empty((n, kc, 3))
-    bd = np.empty(kc)
-    bi = np.empty(kc, np.int64)
+    idx, at, d1, radius, cand, cand_xyz, bd, bi, held, slack2, near, moved = matcher_arrays(n, kc)
     bdk = np.empty(k)
     bik = np.empty(k, np.int64)
-    moved = np.empty((n, 3))
     # each source point's current match, its coordinates and normal, read in sequence while the match holds
     pair = np.full(n, -1, np.int64)
     pair_xyz = np.empty((n, 3))
     pair_n = np.empty((n, 3))
-    # where each match was last evaluated, and the squared distance the point may move from there keeping it
-    held = np.zeros((n, 3))
-    slack2 = np.full(n, -1.0)
-    near = np.empty((n, 4))  # nearest candidate there, its distance, the second's, motion since the search
     fresh = True
     it = 0
     converged = False

@@ -18,7 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
-from .kernels_icp3d import CACHED, cell_order, match_pass, regate, unsort
+from .kernels import same_matches
+from .kernels_icp3d import CACHED, cell_order, match_pass, matcher_arrays, regate, unsort
 
 __all__ = ["point_icp_3d"]
 
@@ -58,21 +59,9 @@ def point_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     kc = max(2, min(CACHED, n_tgt))
     R = R.copy()
     t = t.copy()
-    idx = np.empty(n, np.int64)
+    idx, at, d1, radius, cand, cand_xyz, bd, bi, held, slack2, near, moved = matcher_arrays(n, kc)
     solved = np.empty(n, np.int64)  # the matches the current pose was solved from
-    at = np.empty((n, 3))
-    d1 = np.empty(n)
-    radius = np.empty(n)
-    cand = np.empty((n, kc), np.int64)
-    cand_xyz = np.empty((n, kc, 3))
-    bd = np.empty(kc)
-    bi = np.empty(kc, np.int64)
-    moved = np.empty((n, 3))
     weights = np.empty(n)
-    # where each match was last evaluated, and the squared distance the point may move from there keeping it
-    held = np.zeros((n, 3))
-    slack2 = np.full(n, -1.0)
-    near = np.empty((n, 4))  # nearest candidate there, its distance, the second's, motion since the search
     fresh, have_solved, converged = True, False, False
     it = 0
     gate = gates[0]
@@ -86,15 +75,9 @@ def point_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
             n_ok = match_pass(S, R, t, moved, idx, gate, fresh, at, d1, radius, cand, cand_xyz, held, slack2, near,
                               pts, cpts, origin, cell, dims, starts, order, bd, bi, n_tgt)
             fresh = False
-            if repeat_is_fixed_point and have_solved:
-                same = True
-                for p in range(n):
-                    if idx[p] != solved[p]:
-                        same = False
-                        break
-                if same:
-                    converged = True
-                    break
+            if repeat_is_fixed_point and have_solved and same_matches(idx, solved):
+                converged = True
+                break
             if n_ok < n and n_ok < min_inliers:  # as the numpy loop: checked when a pair is missing
                 return R, t, it, False, 1, stage, n_ok, unsort(idx, perm)
             sw = px = py = pz = qx = qy = qz = 0.0  # weighted centroids of the matched source and target points
