@@ -36,8 +36,8 @@ from .trajectory import nearest_indices
 
 Array = NDArray[np.float64]
 
-__all__ = ["Relations", "RelationResult", "ReferenceNoise", "read_relations", "evaluate_relations", "reference_noise",
-           "DEFAULT_STAMP_TOL"]
+__all__ = ["Relations", "RelationResult", "ReferenceNoise", "read_relations", "evaluate_relations", "errors_by_path",
+           "reference_noise", "DEFAULT_STAMP_TOL"]
 
 DEFAULT_STAMP_TOL = 1e-3  # seconds; the benchmark stamps equal the log's ipc_timestamps to < 1e-5 s
 
@@ -155,6 +155,20 @@ def evaluate_relations(trajectory: Trajectory, relations: Relations, stamp_tol: 
         rot_max_deg=float(rot.max()) if rot.size else float("nan"),
         trans_errors=trans, rot_errors_deg=rot, used=used, stamp_tol=stamp_tol,
     )
+
+
+def errors_by_path(trajectory: Trajectory, relations: Relations,
+                   stamp_tol: float = DEFAULT_STAMP_TOL) -> tuple[Array, Array, Array]:
+    """Per matched relation: the trajectory's own path length between its two poses (m, along the
+    trajectory's positions), the translation error (m) and the absolute heading error (°) — drift grows with
+    the path travelled, not with the time between the stamps."""
+    E, used = relation_errors(trajectory, relations, stamp_tol)
+    P = trajectory.poses
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[:, :2, 3], axis=0), axis=1))])
+    _, i1 = nearest_indices(relations.t1[used], trajectory.stamps, np.inf)
+    _, i2 = nearest_indices(relations.t2[used], trajectory.stamps, np.inf)
+    heading = np.degrees(np.abs(np.arctan2(E[:, 1, 0], E[:, 0, 0])))
+    return np.abs(path[i2] - path[i1]), np.linalg.norm(E[:, :2, 3], axis=1), heading
 
 
 @dataclass(frozen=True)
