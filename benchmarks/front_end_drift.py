@@ -3,11 +3,11 @@
 The held-out log that started the loop-closure work came back to its start with ~10° of heading drift; loop
 closure has to find that return, but the drift itself comes from the front end. This benchmark runs the 2D
 odometry alone (our scan-to-map ICP with the wheel guess, no keyframes, no loop closure, no graph) over each
-log twice in one process — with the default local map (the last ten scans, every scan joins it) and with a
-map of scans spaced along the path (twenty scans, one joins when the sensor moved 0.5 m or turned 0.2 rad
-since the last that did; docs/ODOMETRY.md has why it is not the default) — and measures every scan pose
-against the Kümmerle et al. 2009 relations, binned by the odometry path between the relation's two poses (a
-relation spans a corridor or a whole loop):
+log twice in one process — with the default local map (thirty scans spaced along the path: one joins when
+the sensor moved 0.5 m or turned 0.2 rad since the last that did) and with the map of the last ten scans
+(every scan joins it; the default before 2026-11-26) — and measures every scan pose against the Kümmerle et
+al. 2009 relations, binned by the odometry path between the relation's two poses (a relation spans a
+corridor or a whole loop):
 
 * per bin: relations, median translation error (m), median and 95th percentile of the heading error (°);
 * per log: CPU seconds of the odometry.
@@ -34,15 +34,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from core.trajectory import Trajectory  # noqa: E402
-from evaluation.relations import read_relations, relation_errors  # noqa: E402
-from evaluation.trajectory import nearest_indices  # noqa: E402
+from evaluation.relations import errors_by_path, read_relations  # noqa: E402
 from registration.config import IcpOdometryConfig  # noqa: E402
 from registration.odometry import IcpOdometry  # noqa: E402
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import PLANAR_ICP  # noqa: E402
 
-#: the alternative: twenty scans spaced along the path (~10 m of corridor) instead of the last ten (~0.5 m at walking pace)
-SPACED = PLANAR_ICP.model_copy(update={"map_scans": 20, "map_step_m": 0.5, "map_step_rad": 0.2})
+#: the local map before 2026-11-26: every scan joined it, the last ten formed it (~0.5 m of path at walking pace)
+LAST_TEN_SCANS = PLANAR_ICP.model_copy(update={"map_scans": 10, "unguided_map_scans": None, "map_step_m": 0.0,
+                                               "map_step_rad": 0.1})
 PATH_BINS_M = ((0.0, 2.0), (2.0, 10.0), (10.0, 50.0), (50.0, 200.0), (200.0, 800.0), (800.0, np.inf))
 FAR_M = 200.0  # relations over at least this much odometry path make the summary
 
@@ -58,15 +58,7 @@ def odometry_alone(log: str, config: IcpOdometryConfig) -> tuple[Trajectory, flo
 
 def drift(traj: Trajectory, relations_path: str) -> dict:
     """Relation errors of *traj*, binned by the odometry path between each relation's poses."""
-    rel = read_relations(relations_path)
-    E, used = relation_errors(traj, rel)
-    P = traj.poses
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[:, :2, 3], axis=0), axis=1))])
-    _, i1 = nearest_indices(rel.t1[used], traj.stamps, np.inf)
-    _, i2 = nearest_indices(rel.t2[used], traj.stamps, np.inf)
-    length = np.abs(path[i2] - path[i1])
-    err_m = np.linalg.norm(E[:, :2, 3], axis=1)
-    err_deg = np.degrees(np.abs(np.arctan2(E[:, 1, 0], E[:, 0, 0])))
+    length, err_m, err_deg = errors_by_path(traj, read_relations(relations_path))
     bins = {}
     for lo, hi in PATH_BINS_M:
         m = (length >= lo) & (length < hi)
@@ -86,8 +78,8 @@ def main() -> None:
     args = ap.parse_args()
     pairs = args.runs or [f"{REPO}/data/intel.clf.bz2:{REPO}/data/intel.relations",
                           f"{REPO}/data/mit-csail.clf.bz2:{REPO}/data/mit-csail.relations"]
-    maps = {"default": PLANAR_ICP, "spaced": SPACED}
-    out: dict = {"maps": {k: {f: getattr(c, f) for f in ("map_scans", "map_step_m", "map_step_rad")} for k, c in maps.items()},
+    maps = {"default": PLANAR_ICP, "last_ten_scans": LAST_TEN_SCANS}
+    out: dict = {"maps": {k: {f: getattr(c, f) for f in ("map_scans", "unguided_map_scans", "map_step_m", "map_step_rad")} for k, c in maps.items()},
                  "summary": {}, "bins": {}}
     t0 = time.perf_counter()
     for pair in pairs:

@@ -123,10 +123,13 @@ class KissOdometryConfig(_Frozen):
 
 
 class IcpOdometryConfig(_Frozen):
-    """Scan-to-local-map SVD-ICP odometry: the map is the last ``map_scans`` scans in world frame."""
+    """Scan-to-local-map SVD-ICP odometry: the map is ``map_scans`` scans in world frame, spaced along the path."""
 
     icp: IcpConfig = IcpConfig(gates_m=(0.5, 0.2, 0.1), voxel_m=0.05, robust="trim", trim_fraction=0.9)
     map_scans: int = Field(10, ge=1)
+    #: a scan registered without the wheel guess (no wheel odometry) joins the map whatever map_step_m says, and
+    #: its map is the last unguided_map_scans scans; None = as one registered with it
+    unguided_map_scans: int | None = Field(None, ge=1)
     #: point-to-plane (point-to-line in 2D, Chen & Medioni 1992) instead of point-to-point SVD steps:
     #: no bias towards zero motion where the scan samples the surfaces differently than the map
     point_to_plane: bool = False

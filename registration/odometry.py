@@ -18,7 +18,9 @@ guess; otherwise a constant-velocity guess (the last increment) is used.
   KISS-ICP gives no covariance: it is computed by :func:`registration.alignment.evaluate_alignment` of the
   current scan against the previous one at the KISS pose (plane model, gate 3σ of KISS's threshold).
 * :class:`IcpOdometry` — our SVD-ICP (:func:`registration.icp.icp`) of each scan against the union
-  of the last ``map_scans`` scans in the world frame.
+  of ``map_scans`` scans in the world frame: each joins when the sensor moved ``map_step_m`` or turned
+  ``map_step_rad`` since the last that did (0: every scan); a scan registered without the wheel guess
+  joins whatever the spacing and matches the last ``unguided_map_scans``.
 """
 
 from __future__ import annotations
@@ -150,7 +152,7 @@ class Odometry(abc.ABC):
 
 
 class IcpOdometry(Odometry):
-    """SVD-ICP scan-to-local-map odometry; the map is the last ``map_scans`` scans (world frame)."""
+    """SVD-ICP scan-to-local-map odometry; the map is ``map_scans`` scans spaced along the path (world frame)."""
 
     def _wheel_guided(self, frame: Frame) -> bool:
         return (self.use_wheel_odometry and self._prev_frame is not None and frame.odom is not None
@@ -167,9 +169,13 @@ class IcpOdometry(Odometry):
     def __init__(self, config: IcpOdometryConfig | None = None, use_wheel_odometry: bool = True) -> None:
         super().__init__(use_wheel_odometry)
         self.config = config or IcpOdometryConfig()
-        self._map: deque[Array] = deque(maxlen=self.config.map_scans)  # world-frame points of the map scans
+        c = self.config
+        # world-frame points of the map scans: the last map_scans of the guided map, of which the unguided map
+        # is the last unguided_map_scans
+        self._map: deque[Array] = deque(maxlen=max(c.map_scans, c.unguided_map_scans or 0))
         self._map_pose: Array | None = None
         self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
+        self._target_scans = 0  # how many of the last map scans the target (and the pyramid) hold
         self._unguided_scores: deque[float] = deque(maxlen=50)  # best scores of the last unguided searches
         self.unguided_escalations = 0  # searches repeated over every heading
         self._pyramid = None  # likelihood pyramid of the current map (the search without wheel odometry), likewise
@@ -178,6 +184,16 @@ class IcpOdometry(Odometry):
         g = self.config.first_step_gate_m  # the first registration without wheels: a wider gate first
         self._first_icp = (self.config.icp.model_copy(update={"gates_m": (g,) + tuple(self.config.icp.gates_m)})
                            if g is not None and g > self.config.icp.gates_m[0] else None)
+
+    def _map_scans(self, guided: bool) -> int:
+        """How many of the last map scans form the map of a scan registered with (*guided*) or without the wheel guess."""
+        c = self.config
+        return c.map_scans if guided or c.unguided_map_scans is None else c.unguided_map_scans
+
+    def _map_points(self, guided: bool) -> Array:
+        """World-frame points of the map of a scan registered with (*guided*) or without the wheel guess."""
+        n = self._map_scans(guided)
+        return np.vstack(list(self._map)[-n:])
 
     def _constant_velocity(self, dt: float) -> Array:
         """The last estimated increment, scaled to this scan interval of *dt* seconds across a gap in the log
@@ -231,7 +247,7 @@ class IcpOdometry(Odometry):
         if self._pyramid is None:
             window = int(np.ceil(2 * cfg.unguided_window_m / cfg.unguided_resolution_m))
             levels = int(min(6, np.ceil(np.log2(2 * window + 1))))
-            self._pyramid = correlative.LikelihoodPyramid(np.vstack(self._map)[:, :2], cfg.unguided_resolution_m,
+            self._pyramid = correlative.LikelihoodPyramid(self._map_points(False)[:, :2], cfg.unguided_resolution_m,
                                                           cfg.unguided_resolution_m, levels=levels)
         try:
             found = correlative.match(pts[:, :2], self._pyramid, planar_pose(guess), cfg.unguided_window_m,
@@ -309,10 +325,12 @@ class IcpOdometry(Odometry):
             return self._emit(frame, np.eye(4), None, None)
         prediction = self._guess(frame, self.use_wheel_odometry)
         guess = self._pose @ prediction
-        if self._target is None:
-            self._target = IcpTarget(np.vstack(self._map), None, cfg.icp.normal_neighbors, cfg.icp.workers)
-        target = self._target
         guided = self._wheel_guided(frame)
+        scans = self._map_scans(guided)
+        if self._target is None or self._target_scans != scans:
+            self._target = IcpTarget(self._map_points(guided), None, cfg.icp.normal_neighbors, cfg.icp.workers)
+            self._target_scans, self._pyramid = scans, None
+        target = self._target
         if not guided and frame.is_planar and cfg.unguided_window_m is not None:
             guess = self._place_unguided(pts, guess)
         alt = self._alternative_start(frame, prediction)
@@ -339,8 +357,8 @@ class IcpOdometry(Odometry):
             pose, cov, accepted = guess, None, False
         moved = geo.relative(self._map_pose, pose)
         turned = geo.rotation_angle(moved[:3, :3])
-        if (cfg.map_step_m == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.map_step_m
-                or turned >= cfg.map_step_rad):
+        if (not guided and cfg.unguided_map_scans is not None) or (
+                cfg.map_step_m == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.map_step_m or turned >= cfg.map_step_rad):
             self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_m)))
             self._map_pose = pose
             self._target = None

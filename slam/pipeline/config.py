@@ -24,18 +24,19 @@ class _Model(BaseModel):
 
 # The odometry defaults of the pipeline (docs/ODOMETRY.md has the evidence for each).
 #: Planar scans, our ICP: point-to-line steps from the wheel guess through one 0.3 m gate with a Cauchy
-#: kernel, a local map of the last 10 scans at 3 cm; a step 0.3 m / 0.35 rad off the wheel guess is a
-#: failure; without wheels, a ±1 m / ±30° correlative search first.
+#: kernel, a local map at 3 cm of 30 scans spaced 0.5 m or 0.2 rad apart (without wheels: the last 10 scans);
+#: a step 0.3 m / 0.35 rad off the wheel guess is a failure; without wheels, a ±1 m / ±30° correlative search first.
 PLANAR_ICP = IcpOdometryConfig(
     icp=IcpConfig(gates_m=(0.3,), max_iterations=30, tol_translation_m=5e-4, tol_rotation_rad=5e-4, robust="cauchy",
                   robust_scale_m=0.05, workers=1),
-    map_scans=10, point_to_plane=True, map_voxel_m=0.03, map_step_m=0.0, map_step_rad=0.1, max_range_m=30.0,
-    min_range_m=0.05, max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35, alternative_start_m=0.05,
+    map_scans=30, unguided_map_scans=10, point_to_plane=True, map_voxel_m=0.03, map_step_m=0.5, map_step_rad=0.2,
+    max_range_m=30.0, min_range_m=0.05, max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35, alternative_start_m=0.05,
     alternative_start_rad=0.05, unguided_window_m=1.0, unguided_window_rad=float(np.radians(30.0)))
-#: 3D clouds, our ICP: coarse-to-fine gates on 0.5 m voxels against a 0.3 m local map.
+#: 3D clouds, our ICP: coarse-to-fine gates on 0.5 m voxels against a 0.3 m local map of the last 10 scans.
 SPATIAL_ICP = PLANAR_ICP.model_copy(update={
     "icp": IcpConfig(gates_m=(1.5, 0.6, 0.3), voxel_m=0.5, robust="cauchy", robust_scale_m=0.2),
-    "map_voxel_m": 0.3, "max_range_m": 100.0, "unguided_window_m": None, "first_step_gate_m": 6.0})
+    "map_scans": 10, "unguided_map_scans": None, "map_step_m": 0.0, "map_step_rad": 0.1, "map_voxel_m": 0.3,
+    "max_range_m": 100.0, "unguided_window_m": None, "first_step_gate_m": 6.0})
 #: KISS-ICP: its own defaults for 3D, the indoor planar ones (``KissOdometryConfig.planar_default``) to
 #: 30 m for planar scans; the pipeline computes its own keyframe-edge covariance, so KISS's per-scan one is off.
 PLANAR_KISS = KissOdometryConfig.planar_default().model_copy(update={"max_range_m": 30.0, "compute_covariance": False})
