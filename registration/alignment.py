@@ -38,6 +38,14 @@ COMPILED_3D = True
 ROBUST_CODES = {"none": 0, "huber": 1, "cauchy": 2}
 
 
+def compiled_loop_args(S: NDArray[np.float64], T: NDArray[np.float64], config: IcpConfig, dim: int) -> tuple:
+    """The leading arguments every compiled ICP loop takes (``registration.kernels_icp*``): the source points, the
+    start's rotation and translation (*dim* = 2 or 3), the gates and the stopping, weighting and inlier settings."""
+    return (np.ascontiguousarray(S), T[:dim, :dim].copy(), T[:dim, 3].copy(),
+            np.asarray(config.gates_m, dtype=np.float64), config.max_iterations, config.tol_translation_m,
+            config.tol_rotation_rad, ROBUST_CODES[config.robust], config.robust_scale_m, config.min_inliers)
+
+
 @dataclass(frozen=True)
 class IcpResult:
     """Outcome of one alignment.

@@ -159,17 +159,19 @@ def icp(source: ArrayLike, target: ArrayLike | IcpTarget, init: ArrayLike | None
     return evaluate_matches(S, tgt, T, moved, matcher.match(moved, gate), gate, config, it, converged)
 
 
+def _repeat_is_fixed_point(config: IcpConfig) -> bool:
+    """Unweighted steps to a positive tolerance: the same matches twice mean the same pose (the fixed-point test)."""
+    return config.robust == "none" and config.tol_translation_m > 0 and config.tol_rotation_rad > 0
+
+
 def _icp_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> IcpResult:
     """The 2D iterations of :func:`icp`, compiled (:func:`registration.kernels_icp.point_icp_2d`) on the target's
     grid index, then the same evaluation."""
     from . import kernels_icp
 
     g = tgt.grid
-    repeat_is_fixed_point = config.robust == "none" and config.tol_translation_m > 0 and config.tol_rotation_rad > 0
     R, t, it, converged, status, stage, matches, pairs = kernels_icp.point_icp_2d(
-        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
-        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
-        config.robust_scale_m, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
+        *alignment.compiled_loop_args(S, T, config, 2), _repeat_is_fixed_point(config), g.points, *g.args())
     _refuse(status, it, pairs, stage, config)
     matches[matches < 0] = len(tgt.points)  # unmatched, as cKDTree reports it
     return _evaluated(S, tgt, R, t, matches, config, it, converged)
@@ -181,11 +183,8 @@ def _icp_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig) -> I
     from . import kernels_icp3d_point
 
     g = tgt.grid3
-    repeat_is_fixed_point = config.robust == "none" and config.tol_translation_m > 0 and config.tol_rotation_rad > 0
     R, t, it, converged, status, stage, pairs, matches = kernels_icp3d_point.point_icp_3d(
-        np.ascontiguousarray(S), T[:3, :3].copy(), T[:3, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
-        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
-        config.robust_scale_m, config.min_inliers, repeat_is_fixed_point, g.points, *g.args())
+        *alignment.compiled_loop_args(S, T, config, 3), _repeat_is_fixed_point(config), g.points, *g.args())
     _refuse(status, it, pairs, stage, config)
     if config.covariance_model == "plane":  # the evaluation's normals, from the same grid (no k-d tree to build)
         from .kernels_grid3d import normals_3d

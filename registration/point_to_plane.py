@@ -117,10 +117,8 @@ def _icp_plane_2d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
 
     g = tgt.grid
     R, t, it, converged, status, stage, pairs = kernels_icp.plane_icp_2d(
-        np.ascontiguousarray(S), T[:2, :2].copy(), T[:2, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
-        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
-        config.robust_scale_m, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
-        g.points, *g.args())
+        *alignment.compiled_loop_args(S, T, config, 2), tgt._normals, tgt._have,
+        min(tgt.normal_neighbors, len(tgt.points)), g.points, *g.args())
     _refuse(status, it, pairs, stage, config)
     T = np.eye(4)
     T[:2, :2], T[:2, 3] = R, t
@@ -136,10 +134,8 @@ def _icp_plane_3d_compiled(S: Array, tgt: IcpTarget, T: Array, config: IcpConfig
 
     g = tgt.grid3
     R, t, it, converged, status, stage, pairs, idx = kernels_icp3d.plane_icp_3d(
-        np.ascontiguousarray(S), T[:3, :3].copy(), T[:3, 3].copy(), np.asarray(config.gates_m, dtype=np.float64),
-        config.max_iterations, config.tol_translation_m, config.tol_rotation_rad, alignment.ROBUST_CODES[config.robust],
-        config.robust_scale_m, config.min_inliers, tgt._normals, tgt._have, min(tgt.normal_neighbors, len(tgt.points)),
-        g.points, *g.args())
+        *alignment.compiled_loop_args(S, T, config, 3), tgt._normals, tgt._have,
+        min(tgt.normal_neighbors, len(tgt.points)), g.points, *g.args())
     _refuse(status, it, pairs, stage, config)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
