@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 
 __all__ = ["PointGrid", "nearest_point", "nearest_within", "knn_normal", "normals_2d", "cached_nearest", "insert_best",
-           "same_matches"]
+           "same_matches", "solve_linear"]
 
 # Grids larger than this many cells get coarser cells (a far target of a long-range laser spans ~160 m).
 MAX_CELLS = 4_000_000
@@ -76,6 +76,36 @@ def insert_best(bd, bi, k, d2, index):  # pragma: no cover - compiled
         s -= 1
     bd[s] = d2
     bi[s] = index
+
+
+@njit(cache=True)
+def solve_linear(A, b):  # pragma: no cover - compiled
+    """Gaussian elimination with partial pivoting of an n×n system; NaNs when a pivot is exactly 0."""
+    n = b.shape[0]
+    M = np.empty((n, n + 1))
+    M[:, :n] = A
+    M[:, n] = b
+    for c in range(n):
+        piv = c
+        for r in range(c + 1, n):
+            if abs(M[r, c]) > abs(M[piv, c]):
+                piv = r
+        if M[piv, c] == 0.0:
+            return np.full(n, np.nan)
+        if piv != c:
+            for q in range(n + 1):
+                M[c, q], M[piv, q] = M[piv, q], M[c, q]
+        for r in range(c + 1, n):
+            f = M[r, c] / M[c, c]
+            for q in range(c, n + 1):
+                M[r, q] -= f * M[c, q]
+    x = np.empty(n)
+    for c in range(n - 1, -1, -1):
+        s = M[c, n]
+        for q in range(c + 1, n):
+            s -= M[c, q] * x[q]
+        x[c] = s / M[c, c]
+    return x
 
 
 @njit(cache=True)

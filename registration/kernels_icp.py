@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .kernels import knn_normal, nearest_point, same_matches
+from .kernels import knn_normal, nearest_point, same_matches, solve_linear
 
 __all__ = ["point_icp_2d", "plane_icp_2d"]
 
@@ -93,7 +93,7 @@ def plane_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
                 g[1] += j1 * w * e
                 g[2] += j2 * w * e
             H[1, 0], H[2, 0], H[2, 1] = H[0, 1], H[0, 2], H[1, 2]
-            xi = _solve3(H, -g)
+            xi = solve_linear(H, -g)
             if xi[0] != xi[0]:  # NaN: singular
                 return R, t, it, False, 2, stage, n_ok
             R, t = _apply_se2_left(xi, R, t)
@@ -171,35 +171,6 @@ def point_icp_2d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
     # The matches at the final pose and the last gate (the evaluation's), −1 where none.
     _match_all(S, R, t, idx, pts, ox, oy, cell, nx, ny, order, starts, gates[gates.shape[0] - 1])
     return R, t, it, converged, 0, gates.shape[0] - 1, idx, n
-
-
-@njit(cache=True)
-def _solve3(A, b):  # pragma: no cover - compiled
-    """Gaussian elimination with partial pivoting of a 3×3 system; NaNs when a pivot is exactly 0."""
-    M = np.empty((3, 4))
-    M[:, :3] = A
-    M[:, 3] = b
-    for c in range(3):
-        piv = c
-        for r in range(c + 1, 3):
-            if abs(M[r, c]) > abs(M[piv, c]):
-                piv = r
-        if M[piv, c] == 0.0:
-            return np.full(3, np.nan)
-        if piv != c:
-            for q in range(4):
-                M[c, q], M[piv, q] = M[piv, q], M[c, q]
-        for r in range(c + 1, 3):
-            f = M[r, c] / M[c, c]
-            for q in range(c, 4):
-                M[r, q] -= f * M[c, q]
-    x = np.empty(3)
-    for c in range(2, -1, -1):
-        s = M[c, 3]
-        for q in range(c + 1, 3):
-            s -= M[c, q] * x[q]
-        x[c] = s / M[c, c]
-    return x
 
 
 @njit(cache=True)

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
+from .kernels import solve_linear
 from .kernels_grid3d import cell_index, knn3, normal_at
 
 __all__ = ["CACHED", "cell_order", "evaluate_match", "match_pass", "matcher_arrays", "plane_icp_3d", "regate", "unsort"]
@@ -103,36 +104,6 @@ def evaluate_match(p, mx, my, mz, gate, fresh, at, d1, radius, cand, cand_xyz, h
     near[p, 0], near[p, 1], near[p, 2], near[p, 3] = j_best, best, second, eps
     slack2[p] = _slack2(gate, best, second, d1[p], radius[p], eps)
     return j_best if best < gate else n_tgt
-
-
-@njit(cache=True)
-def _solve(A, b):  # pragma: no cover - compiled
-    """Gaussian elimination with partial pivoting of an n×n system; NaNs when a pivot is exactly 0."""
-    n = b.shape[0]
-    M = np.empty((n, n + 1))
-    M[:, :n] = A
-    M[:, n] = b
-    for c in range(n):
-        piv = c
-        for r in range(c + 1, n):
-            if abs(M[r, c]) > abs(M[piv, c]):
-                piv = r
-        if M[piv, c] == 0.0:
-            return np.full(n, np.nan)
-        if piv != c:
-            for q in range(n + 1):
-                M[c, q], M[piv, q] = M[piv, q], M[c, q]
-        for r in range(c + 1, n):
-            f = M[r, c] / M[c, c]
-            for q in range(c, n + 1):
-                M[r, q] -= f * M[c, q]
-    x = np.empty(n)
-    for c in range(n - 1, -1, -1):
-        s = M[c, n]
-        for q in range(c + 1, n):
-            s -= M[c, q] * x[q]
-        x[c] = s / M[c, c]
-    return x
 
 
 @njit(cache=True)
@@ -302,7 +273,7 @@ def plane_icp_3d(S, R, t, gates, max_iterations, tol_t, tol_r, robust, scale, mi
             for a in range(6):
                 for b in range(a):
                     H[a, b] = H[b, a]
-            xi = _solve(H, -g)
+            xi = solve_linear(H, -g)
             if xi[0] != xi[0]:  # NaN: singular
                 return R, t, it, False, 2, stage, n_ok, unsort(idx, perm)
             R, t = _apply_se3_left(xi, R, t)
