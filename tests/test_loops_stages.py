@@ -119,6 +119,33 @@ def test_global_places_are_those_within_reach_whose_window_no_spatial_search_cov
     assert C.global_places(poses, 10, unc, cfg, True, 2.0, 10).size == 0  # nothing older than the exclusion window
 
 
+def test_the_heading_rate_puts_a_far_drifted_place_within_the_global_search_s_reach():
+    """A place 60 m from the estimate whose independent noise is 5 m per axis (4 σ beyond the radius: out of
+    reach) but whose heading-rate term adds 25 m (within 3 σ of the whole) is the global search's."""
+    cfg = LoopConfig()
+    K = 30
+    poses = np.array([G.xytheta_to_matrix(500.0, 0.0, 0.0)] * K)
+    poses[29] = np.eye(4)
+    poses[0] = G.xytheta_to_matrix(60.0, 0.0, 0.0)
+    noise, drift = np.full(K, 0.01), np.zeros(K)
+    noise[0], drift[0] = 5.0, 25.0
+    unc = NodeUncertainty(2 * (noise**2 + drift**2), np.full(K, 1e-4), 2 * drift**2, np.zeros(K))
+    assert C.global_places(poses, 29, unc, cfg, True, radius_m=2.0, spacing=1).tolist() == [0]
+    assert C.global_places(poses, 29, unc.without_drift(), cfg, True, radius_m=2.0, spacing=1).size == 0
+
+
+def test_the_global_search_takes_the_most_alike_place_not_searched_since_the_robot_moved_a_radius():
+    places = np.array([0, 20, 40, 60])
+    searched = {20: 95.0, 40: 80.0}  # path (m) at their last global search
+    fresh = C.unsearched(places, searched, here_m=100.0, radius_m=10.0)
+    assert fresh.tolist() == [0, 40, 60]  # 20 was searched 5 m of path ago; 40, 20 m ago, may be again
+    alike = np.array([0.6, 0.3, 0.3])
+    sigmas = np.array([0.5, 4.0, 2.0])
+    assert C.next_global_place(fresh, alike, sigmas) == 60  # as alike as 40, nearer in σ
+    assert C.next_global_place(fresh, np.array([0.6, 0.2, 0.3]), sigmas) == 40  # appearance before the estimate
+    assert C.unsearched(places, {}, 0.0, 10.0).tolist() == places.tolist()
+
+
 def test_a_global_candidate_searches_the_whole_local_map_and_every_heading():
     cfg = LoopConfig()
     poses, unc = _scene()
@@ -205,6 +232,28 @@ def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
     flipped = est @ G.xytheta_to_matrix(0.0, 0.0, np.pi)
     assert acc.consider(_verified(0, 30, flipped, est, est_cov, True, cov), _keyframes(60), lambda v: True) is None
     assert acc.pending == [] and acc.stats.rejections[Rejection.INCONSISTENT] == 1
+
+
+def test_a_global_match_is_held_pending_only_within_its_chi2_gate_of_the_estimate():
+    """A global search is not bounded by the estimate (whole local map, every heading): its match goes on to
+    the group stage only within the ``GLOBAL_PLAUSIBLE_PROBABILITY`` quantile of χ²(3) of the estimate's
+    covariance; just outside it is rejected, as a match turned round 80° from an estimate sure to 10° is."""
+    gate = chi2.ppf(C.GLOBAL_PLAUSIBLE_PROBABILITY, 3)
+    est = G.xytheta_to_matrix(30.0, 5.0, 0.3)
+    est_cov = np.diag([400.0, 400.0, np.radians(10.0) ** 2])  # σ 20 m per axis, 10°
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    s = np.sqrt(est_cov[2, 2] + cov[2, 2])
+    for factor, kept in ((0.98, True), (1.02, False)):
+        T = est @ G.se2_exp([0.0, 0.0, factor * s * np.sqrt(gate)])
+        cand = Candidate(0, 30, Source.GLOBAL, est, Window(25.0, np.pi), (est, est_cov), False,
+                         max_mahalanobis2=float(gate))
+        acc = _acceptance()
+        assert acc.consider(Verified(cand, T, cov, 0.9, 0.02, 0.8, 3), _keyframes(60), lambda v: True) is None
+        assert len(acc.pending) == int(kept)
+        assert acc.stats.rejections[Rejection.INCONSISTENT] == int(not kept)
+    poses, unc = _scene()
+    c = C.global_candidate(_keyframes(100), poses, 20, 99, unc, LoopConfig(), (np.zeros(2), np.ones(2)))
+    assert c.max_mahalanobis2 == pytest.approx(gate)
 
 
 def test_an_alignment_held_pending_must_be_unique_and_one_the_estimate_vouches_for_is_not_asked():

@@ -93,6 +93,10 @@ class Acceptance:
         if c.plausible is not None and c.estimate is not None and not _within(c.estimate[0], v.transform, c.plausible):
             self.stats.rejections[Rejection.INCONSISTENT] += 1
             return None  # where the estimate says the robot cannot be: an alias no group may overturn
+        if (c.max_mahalanobis2 is not None and c.estimate is not None
+                and mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) > c.max_mahalanobis2):
+            self.stats.rejections[Rejection.INCONSISTENT] += 1
+            return None  # ... and beyond the estimate's whole uncertainty (a search the estimate did not bound)
         if c.vouched and c.estimate is not None:
             if mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) <= self.gate:
                 lc = to_closure(v, keyframes, self.planar)

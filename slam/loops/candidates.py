@@ -14,6 +14,7 @@ Sources (Olson 2009 §2 for spatial gating, Hess et al. 2016 §V for the global 
 * descriptor: places whose Scan Context descriptor (Kim & Kim 2018) matches, when the spatial
   ones closed nothing: revisits the estimate has lost;
 * global (2D): places whose window would exceed ``max_window_m`` yet lie within reach: one at a time,
+  the one whose surroundings look most like the new keyframe's first (:mod:`slam.loops.surroundings`),
   searched over their whole local map;
 * hypothesis: the place of a recent pending closure, from that closure composed with the odometry
   since, so that a revisit the estimate cannot vouch for gathers its group.
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from core import geometry as G
 from slam.keyframes import Keyframe
@@ -50,10 +52,9 @@ def windows(uncertainty: NodeUncertainty, config: LoopConfig, planar: bool) -> t
     uncertainty relative to the new keyframe (``window_sigmas`` σ, at least the floors).
 
     The heading-rate term of the uncertainty (:mod:`slam.loops.uncertainty`) widens a spatial window up
-    to ``max_window_m`` but never past it: which places are left to the global search, and in which
-    order, is decided by the independent edge noise (:func:`global_places`), so that a term that grows
-    with every metre of path does not dilute the global search's budget over places it could not reach
-    before."""
+    to ``max_window_m`` but never past it; a place the independent edge noise alone puts beyond
+    ``max_window_m`` is no spatial candidate at all (its window is returned uncapped). Places whose whole
+    uncertainty reaches beyond ``max_window_m`` are also the global search's (:func:`global_places`)."""
     d, r = (2, 1) if planar else (3, 3)
     k = config.window_sigmas
     noise = uncertainty.without_drift()
@@ -131,27 +132,55 @@ def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUn
 def global_places(poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig, planar: bool,
                   radius_m: float, spacing: int) -> NDArray[np.int64]:
     """Places (every *spacing*-th keyframe, older than the exclusion window) the new keyframe *j* may be
-    revisiting although their window would exceed ``max_window_m``: within *radius_m* +
-    ``window_sigmas`` σ of its estimate."""
+    revisiting although ``window_sigmas`` σ of its uncertainty exceed ``max_window_m``: within *radius_m* +
+    ``window_sigmas`` σ of its estimate. σ includes the heading-rate term: after a long stretch without
+    closures the drift it models is what puts a return tens of metres from the estimate, beyond any
+    spatial window (measured: 80 m off at 2.3 σ, within reach, but at 4.6 σ of the independent noise
+    alone; docs/LOOP_CLOSURE.md)."""
     last = j - config.exclude_recent_keyframes
     if last <= 0:
         return np.zeros(0, dtype=np.int64)
     ids = np.arange(0, last, max(1, spacing))
-    win_xy, _, sd = windows(uncertainty.without_drift(), config, planar)
+    reach = config.window_sigmas * windows(uncertainty, config, planar)[2][ids]
     dist = np.linalg.norm(poses[ids, :2, 3] - poses[j, :2, 3], axis=1)
-    return ids[(win_xy[ids] > config.max_window_m) & (dist <= radius_m + config.window_sigmas * sd[ids])]
+    return ids[(reach > config.max_window_m) & (dist <= radius_m + reach)]
+
+
+def unsearched(places: NDArray[np.int64], searched_at_m: dict[int, float], here_m: float,
+               radius_m: float) -> NDArray[np.int64]:
+    """The *places* the global search has not searched since the robot was within *radius_m* of path of
+    *here_m* (*searched_at_m*: place → path at its last global search): a keyframe an overlap radius further
+    on sees another part of the place, so it may be searched again — not before."""
+    return np.array([p for p in places if here_m - searched_at_m.get(int(p), -np.inf) > radius_m], dtype=np.int64)
+
+
+def next_global_place(places: NDArray[np.int64], alike: Array, sigmas: Array) -> int:
+    """The place the global search takes: the most alike (smallest surroundings distance *alike*,
+    :mod:`slam.loops.surroundings`), ties by the estimate's distance in standard deviations *sigmas*.
+    Appearance first, because a place needs the global search when the estimate is off by many σ — and
+    then the estimate's own order among dozens of places within reach is no better than chance."""
+    return int(places[np.lexsort((sigmas, alike))[0]])
+
+
+# A global match is plausible within this χ² quantile of the estimate's whole uncertainty (3 dof: 16.3).
+GLOBAL_PLAUSIBLE_PROBABILITY = 0.999
 
 
 def global_candidate(keyframes: list[Keyframe], poses: Array, i: int, j: int, uncertainty: NodeUncertainty,
                      config: LoopConfig, extent: tuple[Array, Array]) -> Candidate:
     """Search place *i* whole for keyframe *j*: every position over the local map's *extent* (its lower
     and upper corners, m) and every heading (Cartographer's ``MatchFullSubmap``: an estimate this far off
-    says little about the heading either)."""
+    says little about the heading either). The search is not bounded by the estimate, so its match is
+    held to it afterwards: within the ``GLOBAL_PLAUSIBLE_PROBABILITY`` quantile of χ²(3) of the estimate's
+    whole uncertainty, heading-rate term included — the same σ that put the place within reach. (An
+    outdoor scan matched 90° round, 60 m from its reference pose, was 7.8 heading σ from the estimate;
+    real returns after 0.05 °/m of injected drift lie at χ² 9–10; docs/LOOP_CLOSURE.md.)"""
     lo, hi = extent
     est = sensor_relative(keyframes, poses, i, j)
     centre = G.xytheta_to_matrix(*(0.5 * (lo + hi)), G.matrix_to_xytheta(est)[2])
     return Candidate(i, j, Source.GLOBAL, centre, Window(float(0.5 * (hi - lo).max()), np.pi),
-                     (est, uncertainty.covariance(i, True)), False)
+                     (est, uncertainty.covariance(i, True)), False,
+                     max_mahalanobis2=float(chi2.ppf(GLOBAL_PLAUSIBLE_PROBABILITY, 3)))
 
 
 def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: Array, j: int,

@@ -9,7 +9,7 @@
    odometry since (so a revisit gathers its group);
 3. when nothing was accepted, descriptor candidates (Scan Context: occupancy bins for a 2D laser,
    heights for a 3D LiDAR); and a global search of one place within reach that no spatial window could
-   cover (2D, every ``global_every_keyframes``);
+   cover, the one that looks most like the new keyframe first (2D, every ``global_every_keyframes``);
 4. the group decision over the pending closures whose window has passed (at the end of the log, over
    the windows still open: :meth:`LoopCloser.close_open_window`).
 
@@ -30,6 +30,7 @@ from .accept import Acceptance
 from .config import LoopConfig
 from .descriptor import SCAN_CONTEXT_3D, DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 from .local_map import LocalMaps
+from .surroundings import Surroundings
 from .types import Candidate, LoopClosure, LoopStats, Rejection, Source
 from .uncertainty import NodeUncertainty, RelativeUncertainty
 from .verify import Reference, Verifier
@@ -52,7 +53,8 @@ class LoopCloser:
         self._path_m: list[float] = []  # cumulative odometry path length at each keyframe
         self._global_turn = 0
         self._radius = 0.0  # the overlap radius of the keyframe being closed
-        self._global_searched: dict[int, int] = {}  # place → keyframe of its last global search
+        self._global_searched: dict[int, float] = {}  # place → path (m) at its last global search
+        self.surroundings = Surroundings()  # what places look like: the global search's order
         self.trace: list[tuple[Candidate, object, dict]] | None = None  # set to a list: (candidate, outcome, figures) of every verification
 
     def summary(self) -> dict:
@@ -179,25 +181,25 @@ class LoopCloser:
     def _global(self, keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty,
                 radius: float, ref: Reference | None, out: list[LoopClosure]) -> None:
         """One global search, every ``global_every_keyframes``: of the places within reach that no spatial
-        window could cover, the most likely one (nearest the estimate in standard deviations) not searched
-        in the last ``global_every_keyframes`` × (places within reach) keyframes — so that every place is
-        searched once before any is searched again."""
+        window could cover, the one whose surroundings look most like the new keyframe's, among those not
+        searched since the robot was an overlap radius of path from here (:func:`candidates.next_global_place`)."""
         c = self.config
-        uncertainty = uncertainty.without_drift()  # the global search's reach and order (see candidates.windows)
         places = C.global_places(poses, j, uncertainty, c, self.planar, radius, self.global_half)
         if len(places) == 0:
             return
         self._global_turn += 1
         if self._global_turn % c.global_every_keyframes:
             return
-        memory = c.global_every_keyframes * len(places)
-        fresh = [int(p) for p in places if j - self._global_searched.get(int(p), -10**9) > memory]
-        if not fresh:
+        here = self._path_m[j]
+        fresh = C.unsearched(places, self._global_searched, here, radius)
+        if len(fresh) == 0:
             return
         sd = np.sqrt(uncertainty.position_var[fresh])
         d = np.linalg.norm(poses[fresh, :2, 3] - poses[j, :2, 3], axis=1)
-        i = fresh[int(np.argmin(d / np.maximum(sd, 1e-9)))]
-        self._global_searched[i] = j
+        alike = self.surroundings.place_distances(j, fresh, self.global_half, j - c.exclude_recent_keyframes,
+                                                  keyframes, poses, np.asarray(self._path_m))
+        i = C.next_global_place(fresh, alike, d / np.maximum(sd, 1e-9))
+        self._global_searched[i] = here
         self.stats.global_searches += 1
         lm = self.maps.get(keyframes, poses, i, self.global_half)
         self._run(C.global_candidate(keyframes, poses, i, j, uncertainty, c, lm.extent()), keyframes, poses, ref, out)

@@ -66,6 +66,8 @@ class Candidate:
         plausible: the window around ``estimate[0]`` within which a closure is plausible at all (three
             search windows of the estimate), or None when the place is beyond any spatial window (then
             groups alone decide).
+        max_mahalanobis2: the largest squared Mahalanobis distance from ``estimate`` at which a closure is
+            plausible at all, for a search the estimate's covariance does not bound (the global one), or None.
     """
 
     i: int
@@ -77,6 +79,7 @@ class Candidate:
     vouched: bool
     map_half: int | None = None
     plausible: Window | None = None
+    max_mahalanobis2: float | None = None
 
 
 @dataclass(frozen=True)
