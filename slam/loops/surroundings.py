@@ -45,10 +45,8 @@ class Surroundings:
         if k not in self._desc:
             first = int(np.searchsorted(path_m[: k + 1], path_m[k] - self.cfg.max_range, side="left"))
             sensor_k = G.inverse(poses[k] @ keyframes[k].base_T_sensor)
-            parts = []
-            for i in range(first, k + 1):
-                T = sensor_k @ poses[i] @ keyframes[i].base_T_sensor
-                parts.append(keyframes[i].points[:, :2] @ T[:2, :2].T + T[:2, 3])
+            parts = [G.transform_points(sensor_k @ poses[i] @ keyframes[i].base_T_sensor, keyframes[i].points[:, :2])
+                     for i in range(first, k + 1)]
             self._desc[k] = polar_descriptor(np.vstack(parts), self.cfg)
         return self._desc[k]
 
