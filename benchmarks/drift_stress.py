@@ -17,6 +17,10 @@ self-check's verdict with its contradicting keyframes. Prints one JSON object.
 
 ``--bend``: besides the constant biases, one leg bent — a 100 m stretch of path from a third of the way along
 turned by so many degrees in all, the rest as measured (the held-out log's west leg turned by ~10°).
+``--jump-m`` / ``--jump-deg``: one odometry edge (registration and wheel alike, 40 % of the way through the
+keyframes) off by so many metres along its step or degrees of heading, its covariance as sure as before: a
+front end that slid along a corridor or matched a room turned, the failure the self-check must call
+``suspect`` (the rooms either side of the step are drawn twice).
 
 Without arguments: the bundled Intel and MIT CSAIL logs (``data/``).
 """
@@ -71,8 +75,20 @@ def bent(record: FrontEndRecord, degrees: float, length_m: float = 100.0) -> Fro
                                wheel_edges=[turn(k, w) for k, w in enumerate(record.wheel_edges)])
 
 
+def jumped(record: FrontEndRecord, along_m: float = 0.0, heading_deg: float = 0.0, at: float = 0.4) -> FrontEndRecord:
+    """*record* with the odometry edge (and wheel edge) into keyframe ``at`` × (keyframes) moved *along_m* along
+    its own x axis and turned by *heading_deg* (covariances unchanged); every other edge as measured."""
+    k = int(at * len(record.keyframes))
+    J = G.xytheta_to_matrix(along_m, 0.0, np.radians(heading_deg))
+
+    def move(edges):  # type: ignore[no-untyped-def]
+        return [dataclasses.replace(e, measurement=e.measurement @ J) if i == k and e is not None else e
+                for i, e in enumerate(edges)]
+    return dataclasses.replace(record, edges=move(record.edges), wheel_edges=move(record.wheel_edges))
+
+
 def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, reference: bool,
-           bends: list[float] = ()) -> dict:
+           bends: list[float] = (), jumps_m: list[float] = (), jumps_deg: list[float] = ()) -> dict:
     """Per bias (``bias``) and per bend (``bend``), the default configuration and, with *reference*, the same
     without the loop closer's heading-rate term (``…_without_heading_rate``), replayed on one recording."""
     t0 = time.perf_counter()
@@ -84,6 +100,8 @@ def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, 
         variants.append(("_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
     cases = [("bias", str(b), lambda b=b: tilted(record, b)) for b in biases]
     cases += [("bend", str(d), lambda d=d: bent(record, d)) for d in bends]
+    cases += [("jump_m", str(m), lambda m=m: jumped(record, along_m=m)) for m in jumps_m]
+    cases += [("jump_deg", str(d), lambda d=d: jumped(record, heading_deg=d)) for d in jumps_deg]
     for suffix, loops in variants:
         for kind, name, perturbed in cases:
             key = kind + suffix
@@ -99,6 +117,7 @@ def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, 
                 "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
                 "global_searches": int(st.get("global_searches", 0)),
                 "self_check": sc.verdict, "contradicting": f"{sc.keyframes_contradicting}/{sc.keyframes_checked}",
+                "changed": sc.keyframes_changed,
                 "replay_s": round(rep.time_s, 1)}
     return out
 
@@ -108,15 +127,18 @@ def main() -> None:
     ap.add_argument("runs", nargs="*", help="LOG:RELATIONS")
     ap.add_argument("--bias", type=float, nargs="*", default=[0.0, 0.1, 0.3], help="heading bias [deg per m travelled]")
     ap.add_argument("--bend", type=float, nargs="*", default=[], help="also: one 100 m stretch (from a third of the path) turned by this many degrees")
+    ap.add_argument("--jump-m", type=float, nargs="*", default=[], help="also: one odometry edge off by this many metres along its step")
+    ap.add_argument("--jump-deg", type=float, nargs="*", default=[], help="also: one odometry edge turned by this many degrees")
     ap.add_argument("--no-reference", action="store_true", help="skip the replays without the heading-rate term")
     args = ap.parse_args()
     pairs = args.runs or [f"{REPO}/data/intel.clf.bz2:{REPO}/data/intel.relations",
                           f"{REPO}/data/mit-csail.clf.bz2:{REPO}/data/mit-csail.relations"]
     config = SlamConfig()
-    result = {"bias_deg_per_m": args.bias, "bend_deg": args.bend, "logs": {}}
+    result = {"bias_deg_per_m": args.bias, "bend_deg": args.bend, "jump_m": args.jump_m, "jump_deg": args.jump_deg, "logs": {}}
     for p in pairs:
         log, rel = p.rsplit(":", 1)
-        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config, not args.no_reference, args.bend)
+        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config, not args.no_reference, args.bend,
+                                                args.jump_m, args.jump_deg)
     print(json.dumps(result, indent=1))
 
 

@@ -59,6 +59,20 @@ def room_with_a_wall_across(x: float = 6.0) -> World:
     return World(occ, np.ones_like(occ), RES, origin, "test_room_wall")
 
 
+#: boxes standing in one pass only (cars parked for a while, furniture moved), for :func:`room_with_boxes`
+BOXES_FIRST = ((3.0, 4.5, 3.6, 4.9), (8.0, 5.5, 9.2, 6.0), (5.0, 1.2, 5.6, 1.6))
+BOXES_SECOND = ((4.5, 4.8, 5.1, 5.2), (10.0, 3.0, 10.5, 4.2), (7.8, 1.0, 8.4, 1.4))
+
+
+def room_with_boxes(boxes: tuple[tuple[float, float, float, float], ...]) -> World:
+    """The :func:`room` with more *boxes* ``(x0, y0, x1, y1)`` standing in it — for one pass only."""
+    occ, xs, ys, origin = _grid(12.0, 8.0)
+    occ[:] = room().occupied
+    for box in boxes:
+        _box(occ, xs, ys, *box)
+    return World(occ, np.ones_like(occ), RES, origin, "test_room_boxes")
+
+
 def corridor(length: float = 40.0) -> World:
     """A featureless corridor, 2 m wide and *length* m long (its ends beyond the laser's reach)."""
     occ, xs, ys, origin = _grid(length, 2.0)

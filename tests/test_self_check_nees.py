@@ -8,9 +8,9 @@ import pytest
 from core import geometry as G
 from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps, heading_by_path
 from slam.loops.types import LoopClosure
-from slam.pipeline.self_check import SelfCheckConfig, self_check
+from slam.pipeline.self_check import SelfCheckConfig, _pair_violation, misplaced, self_check
 
-from tests.loop_scenes import keyframes, room, room_with_a_wall_across
+from tests.loop_scenes import BOXES_FIRST, BOXES_SECOND, keyframes, room, room_with_a_wall_across, room_with_boxes
 
 
 def _two_passes():
@@ -46,6 +46,43 @@ def test_a_wall_put_across_the_room_in_one_pass_is_not_a_wrong_map():
     poses = np.array([kf.odom_pose for kf in kfs])
     sc = self_check(kfs, poses, [], True, SelfCheckConfig(exclude_recent_keyframes=5))
     assert sc.keyframes_checked > 5 and sc.verdict == "consistent"
+
+
+def test_boxes_moved_between_passes_are_a_changed_world_not_a_wrong_map():
+    """Three boxes stand in the room during the first pass and three others during the second (cars parked
+    for a while): their points lie in the other pass's free space both ways, as a misplaced scan's would,
+    but no placement of the scans removes that, so the map is not blamed. The same second pass moved 1 m
+    across the room is explained by a placement: suspect."""
+    first = [(x, 3.0, 0.0) for x in np.linspace(1.5, 10.5, 19)]
+    away = [(10.5, 3.0 + 0.3 * k, np.pi / 2) for k in range(1, 13)]
+    second = [(x, 3.2, np.pi) for x in np.linspace(10.5, 1.5, 19)]
+    kfs = (keyframes(room_with_boxes(BOXES_FIRST), first + away, seed=7)
+           + keyframes(room_with_boxes(BOXES_SECOND), second, seed=8, first_id=31))
+    poses = np.array([kf.odom_pose for kf in kfs])
+    cfg = SelfCheckConfig(exclude_recent_keyframes=5)
+    sc = self_check(kfs, poses, [], True, cfg)
+    assert sc.keyframes_checked > 20 and sc.verdict == "consistent" and sc.keyframes_contradicting == 0
+    assert sc.keyframes_changed > 0.1 * sc.keyframes_checked  # the boxes contradict both ways: seen, not blamed
+    moved = poses.copy()
+    moved[31:] = G.xytheta_to_matrix(0.0, 1.0, 0.0) @ poses[31:]
+    bad = self_check(kfs, moved, [], True, cfg)
+    assert bad.verdict == "suspect" and bad.keyframes_contradicting > 0.1 * bad.keyframes_checked
+
+
+def test_a_contradiction_is_the_maps_when_a_placement_removes_it():
+    """:func:`misplaced` on one pair: the second scan shifted 1 m (or turned 20°) from where it was taken is
+    explained by the placement the search finds; the same scan at its true pose, taken while other boxes stood
+    in the room, contradicts as much, and no placement explains that."""
+    [a] = keyframes(room_with_boxes(BOXES_FIRST), [(3.0, 3.0, 0.5)], seed=1)
+    [b] = keyframes(room_with_boxes(BOXES_FIRST), [(3.5, 3.0, 0.2)], seed=2, first_id=40)
+    [c] = keyframes(room_with_boxes(BOXES_SECOND), [(3.5, 3.0, 0.2)], seed=3, first_id=40)
+    cfg = SelfCheckConfig()
+    true = G.relative(a.odom_pose, b.odom_pose)
+    for error in (G.xytheta_to_matrix(1.0, 0.0, 0.0), G.xytheta_to_matrix(0.0, 0.0, np.radians(20.0))):
+        v = _pair_violation(a, b, true @ error, cfg)
+        assert v > cfg.scan_violation and misplaced(a, b, true @ error, v, cfg)
+    v = _pair_violation(a, c, true, cfg)
+    assert v > cfg.scan_violation and not misplaced(a, c, true, v, cfg)
 
 
 def test_closures_the_solution_violates_are_counted_and_make_the_run_suspect():

@@ -222,6 +222,8 @@ def run(
                           for w in sc.get("where", [])[:3])
         # How much could be checked: a map whose passes never overlap in the estimate offers nothing to compare.
         checked = f"{sc.get('keyframes_checked', 0)} of {s['keyframes']} keyframes overlap another pass and were checked"
+        if sc.get("keyframes_changed"):  # contradictions no placement explains: not held against the map
+            checked += f"; {sc['keyframes_changed']} saw the world changed between passes"
         typer.echo(f"self_check: {sc['verdict']} ({checked}" + (f"; contradictions at {where})" if sc["verdict"] != "consistent" and where else ")"))
     typer.echo(f"wall_time_s: {s['wall_time_s']:.2f}")
     for line in s.get("evaluation", []):
