@@ -6,7 +6,7 @@
   covariances, is within the ``consistency_probability`` quantile of χ²(dof) (the χ² gate of
   Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
   One that fails the gate is rejected: where the estimate vouches, no group overturns it (a road
-  whose trees repeat every metre offered Almería a consistent group 1 m along).
+  whose trees repeat every metre offered a consistent group 1 m along; docs/LOOP_CLOSURE.md has the case).
 * Everything else — an alignment the estimate cannot vouch for — waits, *pending*. But none outside
   three of the windows the estimate itself would have searched (9 σ per axis, with the floors), when
   the place lies within spatial reach: a descriptor match of a corridor seen turned round is an alias
