@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -67,6 +69,9 @@ def test_boxes_moved_between_passes_are_a_changed_world_not_a_wrong_map():
     moved[31:] = G.xytheta_to_matrix(0.0, 1.0, 0.0) @ poses[31:]
     bad = self_check(kfs, moved, [], True, cfg)
     assert bad.verdict == "suspect" and bad.keyframes_contradicting > 0.1 * bad.keyframes_checked
+    # Past its budget of re-alignments the check counts every contradiction against the map, as before the rule.
+    capped = self_check(kfs, poses, [], True, replace(cfg, max_realignments=0))
+    assert capped.verdict == "suspect" and capped.keyframes_changed == 0
 
 
 def test_a_contradiction_is_the_maps_when_a_placement_removes_it():

@@ -68,6 +68,7 @@ class SelfCheckConfig:
     explained_fraction: float = 0.5
     realign_resolution_m: float = 0.1  # cells of the correlative search ...
     realign_max_range_m: float = 10.0  # ... of the points this near the sensor (the farthest sets the angular step)
+    max_realignments: int = 2000  # pairs re-aligned at most (~10 ms each); beyond, a contradiction counts against the map
 
 
 @dataclass
@@ -120,6 +121,7 @@ def contradictions(keyframes: list[Keyframe], poses: Array, config: SelfCheckCon
     k_query = min(K, 4 * config.neighbours + 2 * config.exclude_recent_keyframes + 1)
     dist, idx = tree.query(xy, k=k_query)
     done: set[tuple[int, int]] = set()
+    realigned = 0
     m = config.min_overlap
     for j in range(K):
         reach = config.max_neighbour_distance_m
@@ -149,8 +151,10 @@ def contradictions(keyframes: list[Keyframe], poses: Array, config: SelfCheckCon
             v = min(v_i, v_j)  # both ways: a door or a person in one scan contradicts only the other
             raw[i].append(v)
             raw[j].append(v)
-            if v > config.scan_violation and not misplaced(keyframes[i], keyframes[j], i_T_j, v, config):
-                v = 0.0  # no placement explains it: the world changed between the passes
+            if v > config.scan_violation and realigned < config.max_realignments:
+                realigned += 1
+                if not misplaced(keyframes[i], keyframes[j], i_T_j, v, config):
+                    v = 0.0  # no placement explains it: the world changed between the passes
             values[i].append(v)
             values[j].append(v)
     checked = np.array([len(v) > 0 for v in values])
