@@ -140,10 +140,7 @@ def contradictions(keyframes: list[Keyframe], poses: Array, config: SelfCheckCon
                 taken += 1
                 continue
             i_T_j = G.relative(world_T_sensor[i], world_T_sensor[j])
-            v_j = free_space_violation(G.transform_points(i_T_j, keyframes[j].frame.points), keyframes[i],
-                                       margin=config.margin_m, min_inside=m)
-            v_i = free_space_violation(G.transform_points(G.inverse(i_T_j), keyframes[i].frame.points), keyframes[j],
-                                       margin=config.margin_m, min_inside=m)
+            v_i, v_j = _violations(keyframes[i], keyframes[j], i_T_j, config)
             if v_i == 0.0 and v_j == 0.0 and not _overlaps(keyframes[i], keyframes[j], i_T_j, m):
                 continue  # too little overlap to say anything
             done.add(pair)
@@ -163,13 +160,19 @@ def contradictions(keyframes: list[Keyframe], poses: Array, config: SelfCheckCon
     return med, checked, med_raw
 
 
-def _pair_violation(ki: Keyframe, kj: Keyframe, i_T_j: Array, config: SelfCheckConfig) -> float:
-    """The smaller of the two directions' free-space violations of the pair at the relative pose *i_T_j*."""
+def _violations(ki: Keyframe, kj: Keyframe, i_T_j: Array, config: SelfCheckConfig) -> tuple[float, float]:
+    """The pair's free-space violations at the relative pose *i_T_j*: *ki*'s points in *kj*'s free space, and
+    *kj*'s in *ki*'s."""
     v_j = free_space_violation(G.transform_points(i_T_j, kj.frame.points), ki, margin=config.margin_m,
                                min_inside=config.min_overlap)
     v_i = free_space_violation(G.transform_points(G.inverse(i_T_j), ki.frame.points), kj, margin=config.margin_m,
                                min_inside=config.min_overlap)
-    return min(v_i, v_j)
+    return v_i, v_j
+
+
+def _pair_violation(ki: Keyframe, kj: Keyframe, i_T_j: Array, config: SelfCheckConfig) -> float:
+    """The smaller of the two directions of :func:`_violations`."""
+    return min(_violations(ki, kj, i_T_j, config))
 
 
 def misplaced(ki: Keyframe, kj: Keyframe, i_T_j: Array, violation: float, config: SelfCheckConfig) -> bool:
