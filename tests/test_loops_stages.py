@@ -23,6 +23,11 @@ def _keyframes(K: int, dim: int = 2):
             for k in range(K)]
 
 
+def _line(K: int) -> np.ndarray:
+    """An estimate of *K* keyframes 0.5 m apart along x (for acceptance tests that do not read it)."""
+    return np.array([G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(K)])
+
+
 # ---------------------------------------------------------------------------------------- windows
 
 
@@ -222,7 +227,7 @@ def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
     for factor, accepted in ((0.98, True), (1.02, False)):
         T = est @ G.se2_exp([factor * s * np.sqrt(gate), 0.0, 0.0])
         acc = _acceptance(cfg)
-        lc = acc.consider(_verified(0, 30, T, est, est_cov, True, cov), _keyframes(60), lambda v: True)
+        lc = acc.consider(_verified(0, 30, T, est, est_cov, True, cov), _keyframes(60), _line(60), lambda v: True)
         assert (lc is not None) == accepted
         assert acc.stats.accepted == int(accepted) and acc.pending == []
         assert acc.stats.rejections[Rejection.INCONSISTENT] == int(not accepted)
@@ -230,7 +235,7 @@ def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
     # Outside the window the estimate would have searched (a corridor turned round): rejected, not held for a group.
     acc = _acceptance(cfg)
     flipped = est @ G.xytheta_to_matrix(0.0, 0.0, np.pi)
-    assert acc.consider(_verified(0, 30, flipped, est, est_cov, True, cov), _keyframes(60), lambda v: True) is None
+    assert acc.consider(_verified(0, 30, flipped, est, est_cov, True, cov), _keyframes(60), _line(60), lambda v: True) is None
     assert acc.pending == [] and acc.stats.rejections[Rejection.INCONSISTENT] == 1
 
 
@@ -248,12 +253,64 @@ def test_a_global_match_is_held_pending_only_within_its_chi2_gate_of_the_estimat
         cand = Candidate(0, 30, Source.GLOBAL, est, Window(25.0, np.pi), (est, est_cov), False,
                          max_mahalanobis2=float(gate))
         acc = _acceptance()
-        assert acc.consider(Verified(cand, T, cov, 0.9, 0.02, 0.8, 3), _keyframes(60), lambda v: True) is None
+        assert acc.consider(Verified(cand, T, cov, 0.9, 0.02, 0.8, 3), _keyframes(60), _line(60), lambda v: True) is None
         assert len(acc.pending) == int(kept)
         assert acc.stats.rejections[Rejection.INCONSISTENT] == int(not kept)
     poses, unc = _scene()
     c = C.global_candidate(_keyframes(100), poses, 20, 99, unc, LoopConfig(), (np.zeros(2), np.ones(2)))
     assert c.max_mahalanobis2 == pytest.approx(gate)
+
+
+def _drifted_return(K: int = 300):
+    """Truth: 0–99 an old pass along x (0.5 m apart), 200–299 its revisit 0.2 m beside it. The estimate puts the
+    revisit 2 m / 1 m off and turned by 3° (a heading drift the covariance did not know)."""
+    truth = np.array([G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(K)])
+    truth[100:200] = [G.xytheta_to_matrix(50.0, 0.5 * (k - 100), np.pi / 2) for k in range(100, 200)]
+    truth[200:] = [G.xytheta_to_matrix(0.5 * (k - 200) + 0.1, 0.2, 0.0) for k in range(200, K)]
+    est = truth.copy()
+    est[200:] = G.xytheta_to_matrix(2.0, 1.0, np.radians(3.0)) @ truth[200:]
+    return truth, est
+
+
+def _global_match(truth, est, i, j, m2, offset=None):
+    """A global match of *j* on place *i* (map half 20), measured from *truth* (× *offset*), whose estimate's
+    covariance puts it at squared Mahalanobis distance *m2* from the estimate."""
+    Z = G.relative(truth[i], truth[j]) @ (np.eye(4) if offset is None else offset)
+    E = G.relative(est[i], est[j])
+    e = G.se2_log(G.inverse(E) @ Z)
+    cov = np.eye(3) * 1e-8
+    est_cov = np.eye(3) * float(e @ e) / m2 - cov
+    cand = Candidate(i, j, Source.GLOBAL, E, Window(25.0, np.pi), (E, est_cov), False,
+                     max_mahalanobis2=float(chi2.ppf(C.GLOBAL_PLAUSIBLE_PROBABILITY, 3)),
+                     corroborated_mahalanobis2=float(chi2.ppf(C.GLOBAL_CORROBORATED_PROBABILITY, 3)))
+    return Verified(cand, Z, cov, 0.9, 0.02, 0.8, 20)
+
+
+def test_a_global_match_beyond_its_gate_waits_for_a_group_only_when_an_independent_one_agrees():
+    """A return after a heading drift the model does not know lies a few σ beyond the global gate (χ² 20 > 16.3).
+    One such match is rejected; a second, against old structure that shares no keyframe with the first's
+    local map (±20), that agrees with it — the same correction of the estimate — is held for a group. Not so
+    against the same structure, nor when the two disagree (one slid 2 m along the corridor), nor beyond the
+    looser limit (χ² 35 > 30.7), nor when it is not unique, nor when the odometry (σ 3 cm, 1.8° a step) is
+    too unsure to compare them."""
+    truth, est = _drifted_return()
+    kfs = _keyframes(300)
+
+    def run(second_place, m2=20.0, offset=None, unique=True, step_cov=1e-6):
+        acc = _acceptance(K=300, step_cov=step_cov)
+        first = acc.consider(_global_match(truth, est, 10, 210, m2), kfs, est, lambda v: True)
+        assert first is None and acc.pending == []
+        second = _global_match(truth, est, second_place, 200 + second_place, m2, offset)
+        assert acc.consider(second, kfs, est, lambda v: unique) is None
+        return acc
+
+    acc = run(60)
+    assert [(p.closure.i, p.closure.j) for p in acc.pending] == [(60, 260)] and acc.stats.corroborated == 1
+    assert acc.stats.rejections[Rejection.INCONSISTENT] == 1  # the first, alone
+    for acc in (run(25), run(60, offset=G.xytheta_to_matrix(2.0, 0.0, 0.0)), run(60, m2=35.0), run(60, unique=False),
+                run(60, step_cov=1e-3)):
+        assert acc.pending == [] and acc.stats.corroborated == 0
+        assert acc.stats.rejections[Rejection.INCONSISTENT] == 2
 
 
 def test_an_alignment_held_pending_must_be_unique_and_one_the_estimate_vouches_for_is_not_asked():
@@ -265,8 +322,8 @@ def test_an_alignment_held_pending_must_be_unique_and_one_the_estimate_vouches_f
         return False
 
     acc = _acceptance()
-    acc.consider(_verified(0, 30, est, est, np.eye(3) * 1e-2, True), _keyframes(60), unique)  # vouched, consistent
-    acc.consider(_verified(0, 31, est, None, None, False), _keyframes(60), unique)  # unvouched: ambiguous → dropped
+    acc.consider(_verified(0, 30, est, est, np.eye(3) * 1e-2, True), _keyframes(60), _line(60), unique)  # vouched, consistent
+    acc.consider(_verified(0, 31, est, None, None, False), _keyframes(60), _line(60), unique)  # unvouched: ambiguous → dropped
     assert asked == [31] and acc.pending == [] and acc.stats.rejections[Rejection.AMBIGUOUS] == 1
 
 
@@ -305,7 +362,7 @@ def test_agreeing_pending_closures_are_accepted_as_a_group_once_their_window_has
     cfg = LoopConfig()
     acc = _acceptance(cfg, step_cov=1e-5)
     for v in verified:
-        assert acc.consider(v, _keyframes(60), lambda v: True) is None
+        assert acc.consider(v, _keyframes(60), _line(60), lambda v: True) is None
     W = cfg.group_window_keyframes
     assert acc.decide(30 + W - 2, est) == []  # the window after keyframe 30 is not complete
     group = acc.decide(30 + W - 1, est)
@@ -323,7 +380,7 @@ def test_a_window_still_open_when_the_log_ends_is_decided_on_the_evidence_it_has
     est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), rng)
     acc = _acceptance(step_cov=1e-5, K=35)
     for v in verified:
-        acc.consider(v, _keyframes(35), lambda v: True)
+        acc.consider(v, _keyframes(35), _line(35), lambda v: True)
     assert acc.decide(34, est) == []  # the last keyframe: the window after keyframe 30 is not complete
     group = acc.decide_open_window(est)
     assert sorted(lc.j for lc in group) == [30, 31, 32, 33, 34] and all(lc.group for lc in group)
@@ -338,7 +395,7 @@ def test_closures_that_disagree_form_no_group_and_expire():
     est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), rng, offsets)
     acc = _acceptance(step_cov=1e-5)
     for v in verified:
-        acc.consider(v, _keyframes(60), lambda v: True)
+        acc.consider(v, _keyframes(60), _line(60), lambda v: True)
     assert acc.decide(30 + LoopConfig().group_window_keyframes - 1, est) == []
     assert acc.stats.pending_expired == 5 and acc.pending == []
 
@@ -353,9 +410,9 @@ def test_a_group_contradicted_by_a_closure_accepted_alone_nearby_is_refused():
     _, verified = _return(truth, np.eye(4), rng, [alias] * 5)
     acc = _acceptance(step_cov=1e-5)
     alone = _verified(1, 31, G.relative(est[1], est[31]), G.relative(est[1], est[31]), np.eye(3) * 1e-2, True)
-    assert acc.consider(alone, _keyframes(60), lambda v: True) is not None
+    assert acc.consider(alone, _keyframes(60), _line(60), lambda v: True) is not None
     for v in verified:
-        acc.consider(v, _keyframes(60), lambda v: True)
+        acc.consider(v, _keyframes(60), _line(60), lambda v: True)
     assert acc.decide(30 + LoopConfig().group_window_keyframes - 1, est) == []
     assert acc.stats.groups_contradicted == 1
 

@@ -18,6 +18,14 @@
   accepted on its own between the same stretches disagrees with them. A group is decided once the
   window of ``group_window_keyframes`` after its first member has passed, so the evidence against it
   that arrives in that window (a closure accepted where the estimate was) is seen.
+* A global match beyond its χ² gate of the estimate (``Candidate.max_mahalanobis2``) is rejected unless it is
+  *corroborated*: an earlier global match beyond the gate, against a place whose local map shares no
+  keyframe with its own, agrees with it (the same pairwise test) while the odometry between the two new
+  keyframes and the graph between the two places are sure enough to vouch for the comparison, and both
+  lie within the looser ``Candidate.corroborated_mahalanobis2``. Then it waits for a group like any
+  closure the estimate cannot vouch for. The gate is the estimate's prior; a heading drift beyond the
+  model puts a true return a few σ past it, and two independent searches landing on one correction are
+  what an alias rarely does (docs/LOOP_CLOSURE.md has the measurements).
 """
 
 from __future__ import annotations
@@ -84,19 +92,28 @@ class Acceptance:
         self.gate = float(chi2.ppf(config.consistency_probability, self.dof))
         self.pending: list[Pending] = []
         self.recent: list[LoopClosure] = []  # accepted on their own, within the group window
+        self.beyond: list[tuple[LoopClosure, int]] = []  # global matches beyond the gate (closure, map half)
 
-    def consider(self, v: Verified, keyframes: list[Keyframe], unique: Callable[[Verified], bool]) -> LoopClosure | None:
-        """Accept *v* now (vouched for and consistent with the estimate) or keep it pending (None) when it
-        is *unique* in its search window (else it is dropped: a group of aliases agrees as well as a group
+    def consider(self, v: Verified, keyframes: list[Keyframe], poses: Array,
+                 unique: Callable[[Verified], bool]) -> LoopClosure | None:
+        """Accept *v* now (vouched for and consistent with the estimate *poses*) or keep it pending (None) when
+        it is *unique* in its search window (else it is dropped: a group of aliases agrees as well as a group
         of revisits)."""
         c = v.candidate
         if c.plausible is not None and c.estimate is not None and not _within(c.estimate[0], v.transform, c.plausible):
             self.stats.rejections[Rejection.INCONSISTENT] += 1
             return None  # where the estimate says the robot cannot be: an alias no group may overturn
-        if (c.max_mahalanobis2 is not None and c.estimate is not None
-                and mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) > c.max_mahalanobis2):
-            self.stats.rejections[Rejection.INCONSISTENT] += 1
-            return None  # ... and beyond the estimate's whole uncertainty (a search the estimate did not bound)
+        if c.max_mahalanobis2 is not None and c.estimate is not None:
+            m2 = mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar)
+            if m2 > c.max_mahalanobis2:  # beyond the estimate's whole uncertainty (a search it did not bound)
+                lc = to_closure(v, keyframes, self.planar)
+                if not (c.corroborated_mahalanobis2 is not None and m2 <= c.corroborated_mahalanobis2
+                        and unique(v) and self._corroborated(lc, v.map_half, poses)):
+                    self.stats.rejections[Rejection.INCONSISTENT] += 1
+                    return None
+                self.stats.corroborated += 1
+                self.pending.append(Pending(lc, False, v.map_half))
+                return None
         if c.vouched and c.estimate is not None:
             if mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) <= self.gate:
                 lc = to_closure(v, keyframes, self.planar)
@@ -148,18 +165,49 @@ class Acceptance:
         first = min(p.closure.j for p in self.pending)
         return self.decide(first + self.config.group_window_keyframes - 1, poses)
 
+    def _corroborated(self, lc: LoopClosure, half: int, poses: Array) -> bool:
+        """Whether an earlier global match beyond the gate (kept while the odometry from its new keyframe to
+        *lc*'s vouches for the comparison) agrees with *lc*, against a place whose local map shares no
+        keyframe with *lc*'s (±*half*): two searches of different old structure that find one correction.
+        The places' relative pose is the graph's (closures included), and must be as sure as the
+        odometry's. *lc* is kept for the matches to come."""
+        d = 2 if self.planar else 3
+        pos = poses[:, :d, 3]
+        self.beyond = [(b, h) for b, h in self.beyond if b.j < lc.j and self._sure(*self.uncertainty.chain_variance(b.j, lc.j, pos))]
+        agree = False
+        for b, h in self.beyond:
+            if abs(b.i - lc.i) <= h + half:
+                continue  # the same old structure: one piece of evidence, not two
+            graph = self.uncertainty.from_node(b.i, pos)
+            old = (float(graph.position_var[lc.i]), float(graph.rotation_var[lc.i]))
+            if self._sure(*old) and self.consistent(lc, b, poses, old):
+                agree = True
+                break
+        self.beyond.append((lc, half))
+        return agree
+
+    def _sure(self, position_var: float, rotation_var: float) -> bool:
+        """Whether a relative pose of these variance traces would be vouched for: ``window_sigmas`` σ within the
+        search floors (the spatial candidates' rule)."""
+        c = self.config
+        d, r = (2, 1) if self.planar else (3, 3)
+        return bool(c.window_sigmas * np.sqrt(position_var / d) <= c.window_floor_m
+                    and c.window_sigmas * np.sqrt(rotation_var / r) <= np.radians(c.window_floor_deg))
+
     # ------------------------------------------------------------------ pairwise consistency
-    def consistent(self, a: LoopClosure, b: LoopClosure, poses: Array) -> bool:
+    def consistent(self, a: LoopClosure, b: LoopClosure, poses: Array,
+                   old_variance: tuple[float, float] | None = None) -> bool:
         """PCM's pairwise test: the cycle Z_a⁻¹ (X_ia⁻¹ X_ib) Z_b (X_jb⁻¹ X_ja) is within the χ² gate of the
         identity, under both closures' covariances and the chain variances between their old and
-        between their new keyframes (:meth:`RelativeUncertainty.chain_variance`), rotation variance
-        carried to translation over the closures' lever arm."""
+        between their new keyframes (:meth:`RelativeUncertainty.chain_variance`; *old_variance*, when
+        given, replaces the old keyframes'), rotation variance carried to translation over the closures'
+        lever arm."""
         E = (G.inverse(a.measurement) @ G.relative(poses[a.i], poses[b.i]) @ b.measurement
              @ G.relative(poses[b.j], poses[a.j]))
         e = G.se2_log(E) if self.planar else G.se3_log(E)
         d = 2 if self.planar else 3
         pos = poses[:, :d, 3]
-        ti, ri = self.uncertainty.chain_variance(a.i, b.i, pos)
+        ti, ri = self.uncertainty.chain_variance(a.i, b.i, pos) if old_variance is None else old_variance
         tj, rj = self.uncertainty.chain_variance(a.j, b.j, pos)
         var_r = ri + rj + np.trace(a.covariance[d:, d:]) + np.trace(b.covariance[d:, d:])
         lever2 = float(np.sum(a.measurement[:d, 3] ** 2) + np.sum(b.measurement[:d, 3] ** 2))

@@ -162,8 +162,10 @@ def next_global_place(places: NDArray[np.int64], alike: Array, sigmas: Array) ->
     return int(places[np.lexsort((sigmas, alike))[0]])
 
 
-# A global match is plausible within this χ² quantile of the estimate's whole uncertainty (3 dof: 16.3).
+# A global match is plausible within this χ² quantile of the estimate's whole uncertainty (3 dof: 16.3) ...
 GLOBAL_PLAUSIBLE_PROBABILITY = 0.999
+# ... and within this one (3 dof: 30.7) when an independent global match agrees with it (slam.loops.accept).
+GLOBAL_CORROBORATED_PROBABILITY = 1.0 - 1e-6
 
 
 def global_candidate(keyframes: list[Keyframe], poses: Array, i: int, j: int, uncertainty: NodeUncertainty,
@@ -180,7 +182,8 @@ def global_candidate(keyframes: list[Keyframe], poses: Array, i: int, j: int, un
     centre = G.xytheta_to_matrix(*(0.5 * (lo + hi)), G.matrix_to_xytheta(est)[2])
     return Candidate(i, j, Source.GLOBAL, centre, Window(float(0.5 * (hi - lo).max()), np.pi),
                      (est, uncertainty.covariance(i, True)), False,
-                     max_mahalanobis2=float(chi2.ppf(GLOBAL_PLAUSIBLE_PROBABILITY, 3)))
+                     max_mahalanobis2=float(chi2.ppf(GLOBAL_PLAUSIBLE_PROBABILITY, 3)),
+                     corroborated_mahalanobis2=float(chi2.ppf(GLOBAL_CORROBORATED_PROBABILITY, 3)))
 
 
 def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: Array, j: int,

@@ -146,7 +146,7 @@ class LoopCloser:
             self.stats.rejections[result] += 1
             return
         self.stats.verified += 1
-        lc = self.acceptance.consider(result, keyframes, lambda v: self.verifier.unique(v, keyframes, poses, half))
+        lc = self.acceptance.consider(result, keyframes, poses, lambda v: self.verifier.unique(v, keyframes, poses, half))
         if lc is not None:
             out.append(lc)
 

@@ -68,6 +68,8 @@ class Candidate:
             groups alone decide).
         max_mahalanobis2: the largest squared Mahalanobis distance from ``estimate`` at which a closure is
             plausible at all, for a search the estimate's covariance does not bound (the global one), or None.
+        corroborated_mahalanobis2: ... and the largest at which it is, when an independent match of the same
+            kind beyond ``max_mahalanobis2`` agrees with it (:mod:`slam.loops.accept`), or None.
     """
 
     i: int
@@ -80,6 +82,7 @@ class Candidate:
     map_half: int | None = None
     plausible: Window | None = None
     max_mahalanobis2: float | None = None
+    corroborated_mahalanobis2: float | None = None
 
 
 @dataclass(frozen=True)
@@ -122,6 +125,7 @@ class LoopStats:
     pending_expired: int = 0  # pending closures whose window passed without a group
     groups_contradicted: int = 0  # groups refused because an accepted closure nearby disagrees
     global_searches: int = 0
+    corroborated: int = 0  # global matches beyond the estimate's gate held for a group because another agreed
 
     def as_dict(self) -> dict:
         """Flat counters: ``candidates`` (total), ``candidates_<source>``, ``rejected_<reason>``, the rest."""
@@ -129,5 +133,5 @@ class LoopStats:
         d |= {f"candidates_{s.value}": self.candidates[s] for s in Source}
         d |= {r.value: self.rejections[r] for r in Rejection}
         d |= {k: getattr(self, k) for k in ("verified", "accepted", "accepted_as_group", "pending_expired",
-                                             "groups_contradicted", "global_searches")}
+                                             "groups_contradicted", "global_searches", "corroborated")}
         return d
