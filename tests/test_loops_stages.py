@@ -387,6 +387,76 @@ def test_a_window_still_open_when_the_log_ends_is_decided_on_the_evidence_it_has
     assert acc.pending == [] and acc.decide_open_window(est) is None
 
 
+def test_a_search_decided_at_once_keeps_its_closures_out_of_the_pending_pool():
+    """Closures held for one search (the keyframes sought again after a relocalisation) are decided together at
+    once: the five agreeing ones of a drifted return as a group, five that each slid along the corridor not at
+    all; the pool whose windows close keyframe by keyframe never sees them."""
+    truth = _corridor_truth()
+    for offsets, accepted in ((None, 5), ([G.xytheta_to_matrix(0.5 * k, 0.0, 0.0) for k in range(5)], 0)):
+        est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), np.random.default_rng(4), offsets)
+        acc = _acceptance(step_cov=1e-5)
+        held: list = []
+        for v in verified:
+            assert acc.consider(v, _keyframes(60), est, lambda v: True, held) is None
+        assert acc.pending == [] and len(held) == 5
+        group = acc.decide_held(held, est)
+        assert len(group) == accepted and all(lc.group for lc in group)
+        assert acc.stats.accepted_as_group == accepted and acc.stats.pending_expired == 5 - accepted
+
+
+def test_refused_global_matches_are_remembered_until_taken_the_newest_kept():
+    """A unique global match refused beyond the gate is remembered (where the estimate was off by more than it
+    knew); one beyond the looser limit, or not unique, is not. Taking them empties the memory, which keeps the
+    newest ``_REFUSED_KEPT``."""
+    from slam.loops import accept as A
+
+    truth, est = _drifted_return()
+    kfs = _keyframes(300)
+    acc = _acceptance(K=300)
+    acc.consider(_global_match(truth, est, 10, 210, 20.0), kfs, est, lambda v: True)
+    acc.consider(_global_match(truth, est, 60, 260, 35.0), kfs, est, lambda v: True)
+    acc.consider(_global_match(truth, est, 80, 280, 20.0), kfs, est, lambda v: False)
+    assert acc.take_refused() == [210] and acc.take_refused() == []
+    for j in range(201, 201 + A._REFUSED_KEPT + 5):
+        acc.consider(_global_match(truth, est, 0, j, 20.0), kfs, est, lambda v: True)  # one place: none corroborates
+    assert acc.refused == list(range(206, 201 + A._REFUSED_KEPT + 5))
+
+
+def test_after_a_relocalisation_the_moved_keyframes_around_refused_matches_are_sought_again(monkeypatch):
+    """Seeking again covers ± group_window_keyframes around each refused match, older than the newest keyframe,
+    and only keyframes the relocalisation moved; each under its own uncertainty, with the corrected estimate."""
+    from slam.loops.closer import LoopCloser
+
+    K = 120
+    cfg = LoopConfig()
+    ru = RelativeUncertainty(planar=True)
+    for k in range(1, K):
+        ru.add_edge(k - 1, k, np.eye(3) * 1e-4, 0.5)
+    closer = LoopCloser(cfg, True, ru)
+    closer._path_m = list(0.5 * np.arange(K))
+    kfs = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.ones((10, 2)), odom_pose=np.eye(4)) for k in range(K)]
+    poses = _line(K)
+    sought: list[int] = []
+
+    def spatial(keyframes, p, k, unc, *args):
+        assert p is poses and unc.position_var[k] == 0.0  # the uncertainty relative to k itself
+        sought.append(k)
+        return []
+
+    monkeypatch.setattr(C, "spatial", spatial)
+    monkeypatch.setattr(closer.verifier, "reference", lambda *a: None)
+    closer.acceptance.refused = [30, 35, 112]
+    moved = np.ones(K, dtype=bool)
+    moved[38:] = False
+    moved[112:] = True
+    assert closer.refused
+    closures, relocalise = closer.reseek(kfs, poses, moved, ru)
+    W = cfg.group_window_keyframes
+    assert closures == [] and not relocalise and not closer.refused
+    assert sought == list(range(30 - W, 38)) + list(range(112, K - 1))
+    assert closer.stats.reseeks == len(sought)
+
+
 def test_closures_that_disagree_form_no_group_and_expire():
     """Five closures, each slid along the corridor by its own 0.5 m: no three agree."""
     rng = np.random.default_rng(5)

@@ -80,6 +80,11 @@ def mahalanobis2(expected: Array, expected_cov: Array, T: Array, cov: Array, pla
     return float(innov @ np.linalg.solve(expected_cov + cov, innov))
 
 
+# Refused global matches remembered for the search after a relocalisation (a cost bound: each costs a
+# search of 2 · group_window_keyframes + 1 keyframes).
+_REFUSED_KEPT = 32
+
+
 class Acceptance:
     """Decides on verified alignments; keeps the pending ones and forms their groups."""
 
@@ -93,13 +98,16 @@ class Acceptance:
         self.pending: list[Pending] = []
         self.recent: list[LoopClosure] = []  # accepted on their own, within the group window
         self.beyond: list[tuple[LoopClosure, int]] = []  # global matches beyond the gate (closure, map half)
+        self.refused: list[int] = []  # new keyframes of unique global matches refused beyond the gate, newest last
 
     def consider(self, v: Verified, keyframes: list[Keyframe], poses: Array,
-                 unique: Callable[[Verified], bool]) -> LoopClosure | None:
+                 unique: Callable[[Verified], bool], hold: list[Pending] | None = None) -> LoopClosure | None:
         """Accept *v* now (vouched for and consistent with the estimate *poses*) or keep it pending (None) when
         it is *unique* in its search window (else it is dropped: a group of aliases agrees as well as a group
-        of revisits)."""
+        of revisits) — in *hold* when given (a search decided at once, :meth:`decide_held`), else in the
+        pool whose windows :meth:`decide` closes."""
         c = v.candidate
+        pending = self.pending if hold is None else hold
         if c.plausible is not None and c.estimate is not None and not _within(c.estimate[0], v.transform, c.plausible):
             self.stats.rejections[Rejection.INCONSISTENT] += 1
             return None  # where the estimate says the robot cannot be: an alias no group may overturn
@@ -107,12 +115,15 @@ class Acceptance:
             m2 = mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar)
             if m2 > c.max_mahalanobis2:  # beyond the estimate's whole uncertainty (a search it did not bound)
                 lc = to_closure(v, keyframes, self.planar)
-                if not (c.corroborated_mahalanobis2 is not None and m2 <= c.corroborated_mahalanobis2
-                        and unique(v) and self._corroborated(lc, v.map_half, poses)):
+                if not (c.corroborated_mahalanobis2 is not None and m2 <= c.corroborated_mahalanobis2 and unique(v)):
+                    self.stats.rejections[Rejection.INCONSISTENT] += 1
+                    return None
+                if not self._corroborated(lc, v.map_half, poses):
+                    self.refused = self.refused[-(_REFUSED_KEPT - 1):] + [c.j]
                     self.stats.rejections[Rejection.INCONSISTENT] += 1
                     return None
                 self.stats.corroborated += 1
-                self.pending.append(Pending(lc, False, v.map_half))
+                pending.append(Pending(lc, False, v.map_half))
                 return None
         if c.vouched and c.estimate is not None:
             if mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) <= self.gate:
@@ -125,7 +136,7 @@ class Acceptance:
         if not unique(v):
             self.stats.rejections[Rejection.AMBIGUOUS] += 1
             return None
-        self.pending.append(Pending(to_closure(v, keyframes, self.planar), c.vouched, v.map_half))
+        pending.append(Pending(to_closure(v, keyframes, self.planar), c.vouched, v.map_half))
         return None
 
     def decide(self, j: int, poses: Array) -> list[LoopClosure]:
@@ -140,21 +151,38 @@ class Acceptance:
         if j < first + W - 1:
             return []  # the window after the first pending closure is not complete yet
         window = [p for p in self.pending if p.closure.j < first + W]
-        group = self._max_consistent_set([p.closure for p in window], poses)
+        accepted = self._agreeing([p.closure for p in window], poses)
+        # The window is decided: its closures leave the pool (a group's members as accepted ones).
+        self.pending = [p for p in self.pending if p.closure.j >= first + W]
+        return accepted
+
+    def decide_held(self, held: list[Pending], poses: Array) -> list[LoopClosure]:
+        """The group among *held* closures (those :meth:`consider` kept aside for one search), decided at once."""
+        return self._agreeing([p.closure for p in held], poses)
+
+    def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
+        """The largest pairwise-consistent subset of *closures*, accepted as a group when it spans
+        ``group_min_size`` new keyframes and no closure accepted alone nearby contradicts it (else empty);
+        the rest expire."""
+        group = self._max_consistent_set(closures, poses)
         accepted: list[LoopClosure] = []
-        if len({lc.j for lc in group}) >= c.group_min_size:
+        if len({lc.j for lc in group}) >= self.config.group_min_size:
             if self._contradicted(group, poses):
                 self.stats.groups_contradicted += 1
             else:
                 accepted = group
         members = {id(lc) for lc in accepted}
-        self.stats.pending_expired += sum(1 for p in window if id(p.closure) not in members)
-        # The window is decided: its closures leave the pool (a group's members as accepted ones).
-        self.pending = [p for p in self.pending if p.closure.j >= first + W]
+        self.stats.pending_expired += sum(1 for lc in closures if id(lc) not in members)
         for lc in accepted:
             lc.group = True
         self.stats.accepted_as_group += len(accepted)
         return accepted
+
+    def take_refused(self) -> list[int]:
+        """The new keyframes of the unique global matches refused beyond the gate since the last call
+        (where the estimate was off by more than it knew: worth seeking again once it has moved)."""
+        out, self.refused = self.refused, []
+        return out
 
     def decide_open_window(self, poses: Array) -> list[LoopClosure] | None:
         """At the end of the log: decide the oldest window still open on the evidence that arrived before the

@@ -11,7 +11,9 @@
    heights for a 3D LiDAR); and a global search of one place within reach that no spatial window could
    cover, the one that looks most like the new keyframe first (2D, every ``global_every_keyframes``);
 4. the group decision over the pending closures whose window has passed (at the end of the log, over
-   the windows still open: :meth:`LoopCloser.close_open_window`).
+   the windows still open: :meth:`LoopCloser.close_open_window`);
+5. after a group relocalised the graph, the keyframes around the global matches the estimate had refused
+   are sought again under the corrected estimate (:meth:`LoopCloser.reseek`).
 
 The result is the accepted closures and whether the graph must be relocalised (a group says the
 estimate is off by more than a robust kernel lets a closure pull).
@@ -128,9 +130,44 @@ class LoopCloser:
             return None
         return group, bool(group) and self.acceptance.relocalises(group, poses)
 
+    @property
+    def refused(self) -> bool:
+        """Whether global matches were refused beyond the gate since the last :meth:`reseek`."""
+        return bool(self.acceptance.refused)
+
+    def reseek(self, keyframes: list[Keyframe], poses: Array, moved: NDArray[np.bool_],
+               uncertainty: RelativeUncertainty) -> tuple[list[LoopClosure], bool]:
+        """After a relocalisation (*poses* the new estimate): the keyframes within ``group_window_keyframes`` of
+        each global match refused beyond the gate since the last one, whose pose *moved* by more than a floor
+        window, are sought again — spatial candidates under the corrected estimate, accepted as in
+        :meth:`detect`, their group (if any) decided at once. Such a keyframe was passed while the estimate
+        was off by more than it knew, so its revisits were sought in the wrong place; the refused match says
+        one was there. Returns the closures and whether they relocalise the graph."""
+        c = self.config
+        W = c.group_window_keyframes
+        newest = len(keyframes) - 1
+        seek = sorted({k for r in self.acceptance.take_refused() for k in range(max(0, r - W), min(newest, r + W + 1))
+                       if moved[k]})
+        out: list[LoopClosure] = []
+        held: list = []
+        dim = 2 if self.planar else 3
+        path = np.asarray(self._path_m)
+        radius_then = self._radius
+        for k in seek:
+            unc = uncertainty.from_node(k, poses[:, :dim, 3])
+            self._radius = C.overlap_radius(keyframes[k], c)
+            ref = self.verifier.reference(keyframes, poses, k)
+            for cand in C.spatial(keyframes, poses, k, unc, c, self.planar, self._radius, path):
+                self._run(cand, keyframes, poses, ref, out, held)
+        self._radius = radius_then
+        self.stats.reseeks += len(seek)
+        group = self.acceptance.decide_held(held, poses) if held else []
+        return out + group, bool(group) and self.acceptance.relocalises(group, poses)
+
     def _run(self, cand: Candidate, keyframes: list[Keyframe], poses: Array, ref: Reference | None,
-             out: list[LoopClosure]) -> None:
-        """Verify one candidate and hand a verified alignment to the acceptance stage."""
+             out: list[LoopClosure], held: list | None = None) -> None:
+        """Verify one candidate and hand a verified alignment to the acceptance stage (one it cannot vouch
+        for waits in *held* when given, else in the acceptance stage's pending pool)."""
         self.stats.candidates[cand.source] += 1
         if cand.map_half is not None:
             half = cand.map_half
@@ -146,7 +183,8 @@ class LoopCloser:
             self.stats.rejections[result] += 1
             return
         self.stats.verified += 1
-        lc = self.acceptance.consider(result, keyframes, poses, lambda v: self.verifier.unique(v, keyframes, poses, half))
+        lc = self.acceptance.consider(result, keyframes, poses, lambda v: self.verifier.unique(v, keyframes, poses, half),
+                                      held)
         if lc is not None:
             out.append(lc)
 

@@ -126,6 +126,7 @@ class LoopStats:
     groups_contradicted: int = 0  # groups refused because an accepted closure nearby disagrees
     global_searches: int = 0
     corroborated: int = 0  # global matches beyond the estimate's gate held for a group because another agreed
+    reseeks: int = 0  # keyframes sought again after a relocalisation (around refused global matches)
 
     def as_dict(self) -> dict:
         """Flat counters: ``candidates`` (total), ``candidates_<source>``, ``rejected_<reason>``, the rest."""
@@ -133,5 +134,5 @@ class LoopStats:
         d |= {f"candidates_{s.value}": self.candidates[s] for s in Source}
         d |= {r.value: self.rejections[r] for r in Rejection}
         d |= {k: getattr(self, k) for k in ("verified", "accepted", "accepted_as_group", "pending_expired",
-                                             "groups_contradicted", "global_searches", "corroborated")}
+                                             "groups_contradicted", "global_searches", "corroborated", "reseeks")}
         return d

@@ -12,6 +12,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
+from core import geometry as G
 
 from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig
@@ -35,6 +36,7 @@ class OnlineGraph:
         self.uncertainty = RelativeUncertainty(planar, limit_m2=100.0**2,
                                                drift_rad_per_m=float(np.radians(loops.heading_drift_deg_per_m)))
         self.closer = LoopCloser(loops, planar, self.uncertainty)
+        self._keyframes: list[Keyframe] = []  # every keyframe so far (the last add's)
         self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
 
     def add(self, keyframes: list[Keyframe], edge: OdometryEdge | None, wheel: WheelEdge | None) -> list[LoopClosure]:
@@ -57,6 +59,7 @@ class OnlineGraph:
         unc = self.uncertainty.from_node(kf.id, poses[:, : self.dim, 3])
         new, relocalise = self.closer.detect(keyframes, poses, kf.id, unc)
         t2 = time.perf_counter()
+        self._keyframes = keyframes
         self._add_closures(new, relocalise)
         self.times["loop_closure_s"] += t2 - t1
         self.times["backend_s"] += (t1 - t0) + (time.perf_counter() - t2)
@@ -80,10 +83,20 @@ class OnlineGraph:
             be.add_loop(lc)
             self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
         self.loops.extend(closures)
-        if relocalise:
-            be.relocalise()
-        else:
+        if not relocalise:
             be.update(loop_added=bool(closures))
+            return
+        before = be.poses.copy()
+        be.relocalise()
+        if not self.closer.refused:
+            return
+        # Keyframes the relocalisation moved by more than a floor window were sought under a wrong estimate.
+        cfg = self.closer.config
+        moved = np.array([np.linalg.norm(d[:3, 3]) > cfg.window_floor_m or G.rotation_angle(d[:3, :3]) > np.radians(cfg.window_floor_deg)
+                          for d in (G.relative(a, b) for a, b in zip(before, be.poses))], dtype=bool)
+        again, relocalise_again = self.closer.reseek(self._keyframes, be.poses, moved, self.uncertainty)
+        if again:
+            self._add_closures(again, relocalise_again)
 
     @property
     def stats(self) -> dict:
