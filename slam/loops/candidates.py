@@ -174,9 +174,11 @@ def global_candidate(keyframes: list[Keyframe], poses: Array, i: int, j: int, un
     and upper corners, m) and every heading (Cartographer's ``MatchFullSubmap``: an estimate this far off
     says little about the heading either). The search is not bounded by the estimate, so its match is
     held to it afterwards: within the ``GLOBAL_PLAUSIBLE_PROBABILITY`` quantile of χ²(3) of the estimate's
-    whole uncertainty, heading-rate term included — the same σ that put the place within reach. (An
-    outdoor scan matched 90° round, 60 m from its reference pose, was 7.8 heading σ from the estimate;
-    real returns after 0.05 °/m of injected drift lie at χ² 9–10; docs/LOOP_CLOSURE.md.)"""
+    whole uncertainty, heading-rate term included — the same σ that put the place within reach — or within
+    the looser ``GLOBAL_CORROBORATED_PROBABILITY`` quantile when an independent global match agrees
+    (:mod:`slam.loops.accept`). (An outdoor scan matched 90° round, 60 m from its reference pose, was 7.8
+    heading σ from the estimate; real returns after 0.05 °/m of injected drift lie at χ² 9–10, after 0.06 °/m
+    at 19–21; docs/LOOP_CLOSURE.md.)"""
     lo, hi = extent
     est = sensor_relative(keyframes, poses, i, j)
     centre = G.xytheta_to_matrix(*(0.5 * (lo + hi)), G.matrix_to_xytheta(est)[2])
