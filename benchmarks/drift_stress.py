@@ -10,7 +10,9 @@ Bias 0 reproduces ``slam run``.
 
 Reported per log and bias, for the default configuration and, side by side, the same without the loop
 closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0; ``--no-reference`` skips it): the relation error (Kümmerle et al. 2009) of every scan's pose, the closures
-accepted, the precision after the final solve (Cartographer's 20 cm / 1°), the global searches, and the
+accepted, the precision after the final solve (Cartographer's 20 cm / 1°), the global searches (with the
+global matches admitted beyond the gate because another agreed, ``corroborated``, and the keyframes sought again
+after a relocalisation, ``reseeks``), and the
 self-check's verdict with its contradicting keyframes. Prints one JSON object.
 
     .venv/bin/python benchmarks/drift_stress.py LOG:RELATIONS [LOG:RELATIONS ...] [--bias 0 0.1 0.3] [--bend 10] [--no-reference]
@@ -116,6 +118,7 @@ def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, 
                 "closures_accepted": acc, "pruned": int(st.get("pruned", 0)),
                 "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
                 "global_searches": int(st.get("global_searches", 0)),
+                "corroborated": int(st.get("corroborated", 0)), "reseeks": int(st.get("reseeks", 0)),
                 "self_check": sc.verdict, "contradicting": f"{sc.keyframes_contradicting}/{sc.keyframes_checked}",
                 "changed": sc.keyframes_changed,
                 "replay_s": round(rep.time_s, 1)}
