@@ -96,7 +96,7 @@ def test_origin_outside_grid_rejected():
         raycast_distances(world.occupied, world.origin_xy, world.resolution, [[-1.0, 1.0]], [[1.0, 0.0]], 5.0)
 
 
-@pytest.mark.parametrize("name,res", [("rooms", 0.05), ("obstacles", 0.03), ("corridor", 0.05)])
+@pytest.mark.parametrize("name,res", [("rooms", 0.05), ("obstacles", 0.03), ("corridor", 0.05), ("ring", 0.05)])
 def test_hits_and_no_returns_against_independent_march(name, res):
     """Noise-free: every hit point lies on an occupied cell (a step past it is occupied) and an
     independent fine ray march finds no occupied cell before it; every no-return beam's march

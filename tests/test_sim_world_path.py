@@ -17,7 +17,7 @@ from tests.conftest import shared_path
 SPEC = LASER_PRESETS["fastgpom"]
 
 
-@pytest.mark.parametrize("name", ["rooms", "corridor", "obstacles"])
+@pytest.mark.parametrize("name", ["rooms", "corridor", "obstacles", "ring"])
 def test_procedural_worlds_deterministic_and_closed(name):
     """Same seed → identical grids; another seed → a different world; the free space reachable from
     the inside never touches an unknown cell or the grid border (outer walls close the world)."""
@@ -123,3 +123,20 @@ def test_path_deterministic_for_rng_seed():
     c = plan_path(world, 400, SPEC, np.random.default_rng(8))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_ring_world_is_four_loops_of_corridors_44_to_56_m_across(seed):
+    """A square ring crossed by two corridors: its free space is one piece around exactly four solid blocks (four
+    independent loops), within a square of 44–56 m, and no corridor is narrower than the robot needs (the
+    distance to the nearest non-free cell reaches 1.1 m: 2.4 m corridors)."""
+    w = load_world("ring", seed=seed)
+    _, n_free = ndimage.label(w.free)
+    assert n_free == 1
+    _, n_solid = ndimage.label(~w.free)
+    assert n_solid == 5  # the outer walls with the unknown margin, and the four blocks
+    xs, ys = w.cell_centres()
+    iy, ix = np.nonzero(w.free)
+    span = max(xs[ix].max() - xs[ix].min(), ys[iy].max() - ys[iy].min())
+    assert 44.0 - 0.5 <= span <= 56.0 + 1.0
+    assert ndimage.distance_transform_edt(w.free).max() * w.resolution >= 1.1

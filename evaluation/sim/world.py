@@ -5,7 +5,7 @@ A :class:`World` is a grid (``[iy, ix]``, row 0 at the origin = lowest y, see
 cells are neither traversable nor reflective: like the STDR simulator (an obstacle only where the
 OccupancyGrid value is > 70) the laser passes through them.
 
-The procedural worlds ``rooms``, ``corridor`` and ``obstacles`` are our own (MIT), generated from
+The procedural worlds ``rooms``, ``corridor``, ``obstacles`` and ``ring`` are our own (MIT), generated from
 axis-aligned walls, boxes and discs, deterministic for a seed and rasterised at any resolution
 (a cell is occupied when its centre lies inside a shape).
 """
@@ -23,7 +23,7 @@ from mapping.mapserver import read_map_server, write_map_server
 
 __all__ = ["World", "load_world", "PROCEDURAL_WORLDS", "world_from_map_server"]
 
-PROCEDURAL_WORLDS = ("rooms", "corridor", "obstacles")
+PROCEDURAL_WORLDS = ("rooms", "corridor", "obstacles", "ring")
 
 
 @dataclass
@@ -287,6 +287,35 @@ def _corridor(resolution: float, rng: np.random.Generator) -> World:
     return cv.world("corridor")
 
 
+def _ring(resolution: float, rng: np.random.Generator) -> World:
+    """A square ring of corridors 44–56 m across, crossed by two central corridors (four loops, a building's
+    floor of offices around a core), 2.4 m wide; door niches at irregular spacing along every face: long
+    corridors with little along them, where a scan matcher slides and a drifted heading meets its start
+    again only after a long loop."""
+    size, cw = rng.uniform(44.0, 56.0), 2.4
+    cv = _Canvas(size, size, resolution)
+    cv.outer_walls()
+    mid = rng.uniform(0.45, 0.55, size=2) * size  # centres of the north-south and east-west cross corridors
+    xs = [(cw, mid[0] - cw / 2), (mid[0] + cw / 2, size - cw)]
+    ys = [(cw, mid[1] - cw / 2), (mid[1] + cw / 2, size - cw)]
+    for bx0, bx1 in xs:
+        for by0, by1 in ys:
+            cv.rect(bx0, by0, bx1, by1)
+            for a, b, fixed, along_x in ((bx0, bx1, by0, True), (bx0, bx1, by1, True), (by0, by1, bx0, False),
+                                         (by0, by1, bx1, False)):
+                for c in np.cumsum(rng.uniform(3.0, 9.0, size=12)) + a:
+                    if c > b - 1.0:
+                        break
+                    inward = 0.6 if fixed in (by0, bx0) else -0.6
+                    if along_x:
+                        cv.door(c - 0.5, min(fixed, fixed + inward), c + 0.5, max(fixed, fixed + inward))
+                    else:
+                        cv.door(min(fixed, fixed + inward), c - 0.5, max(fixed, fixed + inward), c + 0.5)
+    for _ in range(int(rng.integers(6, 12))):
+        cv.notch(rng.uniform(1.0, size - 1.0), bottom=rng.uniform() < 0.5, half_width=0.5, depth=0.4)
+    return cv.world("ring")
+
+
 def _obstacles(resolution: float, rng: np.random.Generator) -> World:
     """An open walled area with random discs and rotated squares at least 1.2 m apart."""
     width = height = 16.0
@@ -308,11 +337,11 @@ def _obstacles(resolution: float, rng: np.random.Generator) -> World:
     return cv.world("obstacles")
 
 
-_BUILDERS = {"rooms": _rooms, "corridor": _corridor, "obstacles": _obstacles}
+_BUILDERS = {"rooms": _rooms, "corridor": _corridor, "obstacles": _obstacles, "ring": _ring}
 
 
 def load_world(name_or_yaml: str | Path, resolution: float | None = None, seed: int = 0) -> World:
-    """A procedural world (``rooms``, ``corridor``, ``obstacles``; default 0.05 m cells) or a
+    """A procedural world (``rooms``, ``corridor``, ``obstacles``, ``ring``; default 0.05 m cells) or a
     map_server YAML path (its own resolution unless *resolution* is given). Deterministic in *seed*."""
     name = str(name_or_yaml)
     if name in _BUILDERS:

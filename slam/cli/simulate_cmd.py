@@ -11,7 +11,7 @@ from .options import alphas as parse_alphas
 
 
 def simulate(
-    world: str = typer.Argument(..., help="rooms | corridor | obstacles, or a ROS map_server .yaml file."),
+    world: str = typer.Argument(..., help="rooms | corridor | obstacles | ring, or a ROS map_server .yaml file."),
     out: Path = typer.Option(..., "--out", "-o", help="Output MCAP log; the ground-truth map goes beside it as <stem>_map.pgm/.yaml."),
     seed: int = typer.Option(0, "--seed", min=0, help="Seed of the world, the path and all noise."),
     scans: int = typer.Option("auto", "--scans", parser=scan_count,
