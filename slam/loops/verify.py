@@ -244,12 +244,8 @@ class Verifier:
         cfg = self.config
         xy = min(c.window.xy_m, _UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
         th = np.pi  # every heading: a symmetric corridor matches itself turned round as well as straight
-        radius = _UNIQUE_RADIUS_CELLS * pyr.resolution
-        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, _UNIQUE_RADIUS_RAD, floor * own)
-        if c.window.xy_m > xy:  # a window wider than that: the place the estimate searched holds no rival either
-            wider = correlative.best_elsewhere(pts, pyr, c.guess, c.window.xy_m, c.window.theta_rad, T, radius,
-                                               _UNIQUE_RADIUS_RAD, floor * own)
-            other = wider if other is None else (other if wider is None else max(other, wider))
+        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T,
+                                           _UNIQUE_RADIUS_CELLS * pyr.resolution, _UNIQUE_RADIUS_RAD, floor * own)
         return 0.0 if other is None else other / own
 
     def _covariance(self, res: IcpResult, kj: Keyframe) -> Array:
