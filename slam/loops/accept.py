@@ -40,6 +40,7 @@ from scipy.stats import chi2
 from core import geometry as G
 from slam.keyframes import Keyframe
 
+from .candidates import vouches
 from .config import LoopConfig
 from .types import LoopClosure, LoopStats, Rejection, Verified, Window
 from .uncertainty import RelativeUncertainty
@@ -114,10 +115,10 @@ class Acceptance:
         if c.max_mahalanobis2 is not None and c.estimate is not None:
             m2 = mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar)
             if m2 > c.max_mahalanobis2:  # beyond the estimate's whole uncertainty (a search it did not bound)
-                lc = to_closure(v, keyframes, self.planar)
                 if not (c.corroborated_mahalanobis2 is not None and m2 <= c.corroborated_mahalanobis2 and unique(v)):
                     self.stats.rejections[Rejection.INCONSISTENT] += 1
                     return None
+                lc = to_closure(v, keyframes, self.planar)
                 if not self._corroborated(lc, v.map_half, poses):
                     self.refused = self.refused[-(_REFUSED_KEPT - 1):] + [c.j]
                     self.stats.rejections[Rejection.INCONSISTENT] += 1
@@ -201,26 +202,18 @@ class Acceptance:
         odometry's. *lc* is kept for the matches to come."""
         d = 2 if self.planar else 3
         pos = poses[:, :d, 3]
-        self.beyond = [(b, h) for b, h in self.beyond if b.j < lc.j and self._sure(*self.uncertainty.chain_variance(b.j, lc.j, pos))]
+        self.beyond = [(b, h) for b, h in self.beyond if b.j < lc.j and vouches(*self.uncertainty.chain_variance(b.j, lc.j, pos), self.config, self.planar)]
         agree = False
         for b, h in self.beyond:
             if abs(b.i - lc.i) <= h + half:
                 continue  # the same old structure: one piece of evidence, not two
             graph = self.uncertainty.from_node(b.i, pos)
             old = (float(graph.position_var[lc.i]), float(graph.rotation_var[lc.i]))
-            if self._sure(*old) and self.consistent(lc, b, poses, old):
+            if vouches(*old, self.config, self.planar) and self.consistent(lc, b, poses, old):
                 agree = True
                 break
         self.beyond.append((lc, half))
         return agree
-
-    def _sure(self, position_var: float, rotation_var: float) -> bool:
-        """Whether a relative pose of these variance traces would be vouched for: ``window_sigmas`` σ within the
-        search floors (the spatial candidates' rule)."""
-        c = self.config
-        d, r = (2, 1) if self.planar else (3, 3)
-        return bool(c.window_sigmas * np.sqrt(position_var / d) <= c.window_floor_m
-                    and c.window_sigmas * np.sqrt(rotation_var / r) <= np.radians(c.window_floor_deg))
 
     # ------------------------------------------------------------------ pairwise consistency
     def consistent(self, a: LoopClosure, b: LoopClosure, poses: Array,

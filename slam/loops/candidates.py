@@ -71,6 +71,14 @@ def _vouched(win_xy: float, win_th: float, config: LoopConfig) -> bool:
     return bool(win_xy <= config.window_floor_m and win_th <= np.radians(config.window_floor_deg))
 
 
+def vouches(position_var: float, rotation_var: float, config: LoopConfig, planar: bool) -> bool:
+    """Whether a relative pose with these variance traces (m², rad²) is sure enough to vouch for: its
+    ``window_sigmas`` σ search window would stay at the floors (:func:`windows`, :func:`_vouched`)."""
+    d, r = (2, 1) if planar else (3, 3)
+    return _vouched(config.window_sigmas * float(np.sqrt(position_var / d)),
+                    config.window_sigmas * float(np.sqrt(rotation_var / r)), config)
+
+
 _PLAUSIBLE_WINDOWS = 3.0  # a closure is implausible beyond three search windows of the estimate (9 σ per axis)
 
 
