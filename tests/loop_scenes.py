@@ -81,6 +81,19 @@ def corridor(length: float = 40.0) -> World:
     return World(occ, np.ones_like(occ), RES, origin, "test_corridor")
 
 
+def corridor_with_bays(period: float = 5.0, length: float = 80.0) -> World:
+    """The :func:`corridor` with a 2 m wide, 0.8 m deep bay in both walls every *period* metres (doors along a
+    corridor: every place looks like the ones *period* metres on, and unlike those a metre or two away)."""
+    occ, xs, ys, origin = _grid(length, 2.0)
+    occ[:] = corridor(length).occupied
+    for x in np.arange(period / 2, length, period):
+        _box(occ, xs, ys, x - 1.15, -0.95, x + 1.15, 0.0)  # walls round the bays ...
+        _box(occ, xs, ys, x - 1.15, 2.0, x + 1.15, 2.95)
+        occ[np.ix_((ys > -0.8) & (ys < 0.0), (xs > x - 1.0) & (xs < x + 1.0))] = False  # ... and the bays
+        occ[np.ix_((ys > 2.0) & (ys < 2.8), (xs > x - 1.0) & (xs < x + 1.0))] = False
+    return World(occ, np.ones_like(occ), RES, origin, "test_corridor_bays")
+
+
 def keyframes(world: World, xyt: list[tuple[float, float, float]], seed: int = 0, laser: LaserSpec = LASER,
               first_id: int = 0) -> list[Keyframe]:
     """A keyframe per pose ``(x, y, θ)`` (base = sensor), scanned in *world*; ``odom_pose`` is the true pose;

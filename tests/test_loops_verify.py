@@ -14,7 +14,7 @@ from slam.loops.local_map import LocalMaps
 from slam.loops.types import Candidate, Rejection, Source, Verified, Window
 from slam.loops.verify import Verifier, free_space_violation, free_space_violation_both
 
-from tests.loop_scenes import corridor, keyframes, room
+from tests.loop_scenes import corridor, corridor_with_bays, keyframes, room
 
 
 def _path_and_revisit(world, path, revisit):
@@ -72,6 +72,32 @@ def test_a_match_in_a_featureless_corridor_is_verified_but_not_unique():
     res = v.verify(cand, kfs, poses, 3, v.reference(kfs, poses, j))
     assert isinstance(res, Verified)
     assert not v.unique(res, kfs, poses, 3)
+
+
+def test_a_match_away_from_the_estimate_must_outscore_the_stretch_back_to_it():
+    """Bays every 5 m along a corridor: a match one bay along the right pose has no rival within the
+    uniqueness radius (three floor windows, ±3 m). When the estimate puts the robot at the right pose, that
+    pose lies on the stretch between the match and the estimate and scores as well: not unique. Without an
+    estimate, with one at the match itself, or in a global search (which looks where the estimate may be
+    wrong), the radius alone decides: unique."""
+    path = [(x, 1.0, 0.0) for x in np.linspace(20.0, 60.0, 81)]
+    kfs, poses = _path_and_revisit(corridor_with_bays(5.0, 80.0), path, (40.1, 1.05, np.radians(1.0)))
+    j, i = len(kfs) - 1, 40  # keyframe 40 stands at x = 40
+    truth = G.relative(poses[i], poses[j])
+    alias = G.xytheta_to_matrix(5.0, 0.0, 0.0) @ truth  # one bay on, along the corridor
+    cfg = LoopConfig(correlative_max_range_m=12.0)  # what both placements see lies inside the old pass's map
+    v = Verifier(cfg, True, LocalMaps())
+    pts = kfs[j].points[np.hypot(kfs[j].points[:, 0], kfs[j].points[:, 1]) <= 12.0]
+    pyr = v.maps.pyramid(v.maps.get(kfs, poses, i, 40), cfg.correlative_resolution_m, 6)
+    assert correlative.score_at(pts, pyr, alias) > 0.9 * correlative.score_at(pts, pyr, truth)  # a true alias
+    cov = np.diag([4.0, 4.0, 0.01])
+    off = G.xytheta_to_matrix(0.4, 0.1, np.radians(1.0))  # the estimate a little off the right pose
+    # (max_mahalanobis2 set: a search the estimate's covariance does not bound, as the global search marks it)
+    for estimate, bound, unique in ((truth @ off, None, False), (None, None, True), (alias @ off, None, True),
+                                    (truth @ off, 16.3, True)):
+        cand = Candidate(i, j, Source.SPATIAL, alias, Window(8.0, np.radians(5.0)),
+                         None if estimate is None else (estimate, cov), False, max_mahalanobis2=bound)
+        assert v.unique(Verified(cand, alias, np.eye(3) * 1e-4, 0.9, 0.02, 0.8, 40), kfs, poses, 40) is unique
 
 
 def test_best_elsewhere_is_the_brute_force_maximum_outside_the_excluded_neighbourhood():

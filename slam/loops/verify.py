@@ -12,7 +12,11 @@
    three floor windows of the match, at any heading, may score within ``ambiguity_ratio`` of it (the
    ratio test of place recognition); a corridor whose matches slide along it, doors repeating along
    it, or a corridor that looks the same turned round (groups of matches 180° off) fail
-   it. Farther aliases (the same corridor elsewhere in the map) are left to the group test.
+   it. When the match moves the robot farther from where the estimate puts it than that, the stretch
+   between the two is searched too: a match must outscore every pose on the way back to the estimate
+   (the bays of a corridor repeat farther apart than the radius, and the right pose lies between) —
+   unless the search is a global one, which looks where the estimate may be wrong.
+   Farther aliases (the same corridor elsewhere in the map) are left to the group test.
 
 *The keyframe's own registration* (:class:`Reference`) is what a true match of this scan looks like:
 the scan against the local map of the keyframes just before it, at the estimate's relative pose. A
@@ -190,7 +194,8 @@ class Verifier:
 
     def unique(self, v: Verified, keyframes: list[Keyframe], poses: Array, half: int) -> bool:
         """Whether the verified alignment *v* is locally unique: no pose beyond a few cells and degrees of it,
-        within three floor windows of it (and within its search window) at any heading, scores within
+        within three floor windows of it (and within its search window) at any heading, nor on the stretch
+        between it and the estimate's pose (one floor window round it), scores within
         ``ambiguity_ratio`` of its own score (2D with the correlative search; True
         otherwise). Asked of every alignment the acceptance stage holds pending: accepted only in a group
         against the estimate, it must not be one of several equally good poses (a corridor's slides, the
@@ -244,8 +249,24 @@ class Verifier:
         cfg = self.config
         xy = min(c.window.xy_m, _UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
         th = np.pi  # every heading: a symmetric corridor matches itself turned round as well as straight
-        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T,
-                                           _UNIQUE_RADIUS_CELLS * pyr.resolution, _UNIQUE_RADIUS_RAD, floor * own)
+        radius = _UNIQUE_RADIUS_CELLS * pyr.resolution
+        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, _UNIQUE_RADIUS_RAD, floor * own)
+        if c.estimate is not None and c.max_mahalanobis2 is None:
+            # The stretch between the match and the estimate's own place, when the box around the match does
+            # not hold that place and the estimate's covariance bounds the search (not a global one, which
+            # looks where the estimate may be wrong): a match that moves the robot away from where the
+            # estimate puts it must score better than every pose on the way there (along a corridor, the
+            # right pose lies between it and its alias).
+            est = G.matrix_to_xytheta(c.estimate[0])
+            mine = G.matrix_to_xytheta(T)
+            half = np.abs(est[:2] - mine[:2]) / 2
+            if np.any(2 * half > xy - cfg.window_floor_m):
+                d_th = float(G.wrap_angle(est[2] - mine[2]))
+                mid = G.xytheta_to_matrix(np.array([*(est[:2] + mine[:2]) / 2, mine[2] + d_th / 2]))
+                near = correlative.best_elsewhere(pts, pyr, mid, float(half.max()) + cfg.window_floor_m,
+                                                  abs(d_th) / 2 + np.radians(cfg.window_floor_deg),
+                                                  T, radius, _UNIQUE_RADIUS_RAD, floor * own)
+                other = near if other is None else (other if near is None else max(other, near))
         return 0.0 if other is None else other / own
 
     def _covariance(self, res: IcpResult, kj: Keyframe) -> Array:
