@@ -95,6 +95,29 @@ def _crop(points: Array, min_range: float, max_range: float) -> Array:
     return points[(r >= min_range) & (r <= max_range)]
 
 
+_STALE_M = 1e-3  # slack of the lag test: a wheel increment this small is no motion at all
+_STALE_RAD = 1e-3
+
+
+def wheels_lag(wheel: Array, scans: Array, bound_m: float | None, bound_rad: float | None) -> bool:
+    """Whether the wheel increment *wheel* lags the scans' own last increment *scans* (both ``prev_T_curr``):
+    the wheels report less than the bounds' motion, and in a part where they disagree with the scans by
+    more than its bound (translation *bound_m*, rotation *bound_rad*; None leaves a part out) they report
+    at most half the scans' motion (+1 mm / 0.001 rad) — no turn while the scans turned, a gap the wheel
+    pose barely crossed. Slow, steady wheels beside a registration that stopped or went the other way do
+    not lag: there it is the registration that slid."""
+    def small(T: Array) -> tuple[float, float]:
+        return float(np.linalg.norm(T[:3, 3])), geo.rotation_angle(T[:3, :3])
+
+    w_m, w_rad = small(wheel)
+    s_m, s_rad = small(scans)
+    d_m, d_rad = small(geo.relative(wheel, scans))
+    if (bound_m is not None and w_m > bound_m) or (bound_rad is not None and w_rad > bound_rad):
+        return False
+    return bool((bound_m is not None and d_m > bound_m and w_m <= 0.5 * s_m + _STALE_M)
+                or (bound_rad is not None and d_rad > bound_rad and w_rad <= 0.5 * s_rad + _STALE_RAD))
+
+
 class Odometry(abc.ABC):
     """Common interface: ``update(frame) → OdometryStep``; ``run(frames)`` for a whole log."""
 
@@ -213,9 +236,9 @@ class IcpOdometry(Odometry):
     def _alternative_start(self, frame: Frame, prediction: Array) -> Array | None:
         """The constant-velocity increment (scaled to this scan interval) when the wheel odometry is
         lumpy here, else None: the wheel prediction disagrees by more than the configured bounds with
-        it, and it is stale (no motion) or differs as much from the previous wheel increment (scaled to
-        this scan interval). Wheel odometry that lost a gap of the log (the wheel pose barely moved
-        while the scans did) is lumpy in this sense.
+        it, and it lags the scans (:func:`wheels_lag`) or differs as much from the previous wheel
+        increment (scaled to this scan interval). Wheel odometry that lost a gap of the log (the wheel
+        pose barely moved while the scans did) is lumpy in this sense.
 
         The second test keeps smooth wheel odometry in charge: after an ICP slide along a corridor the
         last increment disagrees with the wheels too, and starting from it again fed the slide
@@ -229,8 +252,8 @@ class IcpOdometry(Odometry):
         constant_velocity = self._constant_velocity(dt)
         if not self._disagree(prediction, constant_velocity):
             return None
-        stale = not self._disagree(prediction, np.eye(4))  # the wheels report (almost) no motion
-        if not stale and prev_wheel is not None and prev_wheel[1] > 0 and dt > 0:
+        lags = wheels_lag(prediction, constant_velocity, c.alternative_start_m, c.alternative_start_rad)
+        if not lags and prev_wheel is not None and prev_wheel[1] > 0 and dt > 0:
             expected = geo.se3_exp(geo.se3_log(prev_wheel[0]) * (dt / prev_wheel[1]))
             if not self._disagree(prediction, expected):
                 return None  # the wheels move as they did: they are not lumpy here

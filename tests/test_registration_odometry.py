@@ -240,6 +240,26 @@ def test_icp_odometry_survives_wheel_odometry_logged_in_lumps():
 
 
 
+def test_wheels_lag_the_scans_only_where_they_report_at_most_half_the_scans_motion():
+    """The lag test behind the constant-velocity start: the wheels lag the scans' last increment when, in a part
+    where the two disagree beyond its bound, the wheels report at most half the scans' motion. A steady 4 cm a
+    scan beside a registration that stopped or stepped back is the registration's slide, not a lag (below
+    0.5 m/s at 10 Hz every wheel increment is under the 5 cm bound, so "under the bound" alone called every
+    slow robot's wheels stale)."""
+    from registration.odometry import wheels_lag
+
+    X = lambda x, y=0.0, th=0.0: geo.xytheta_to_matrix(x, y, th)  # noqa: E731
+    b_m, b_rad = 0.05, 0.05
+    assert wheels_lag(X(0.0), X(0.2), b_m, b_rad)  # no motion at all while the scans moved on (a gap)
+    assert wheels_lag(X(0.04), X(0.2), b_m, b_rad)  # a fifth of it
+    assert wheels_lag(X(0.04, th=0.0), X(0.04, th=0.3), b_m, b_rad)  # no turn while the scans turned (a lump)
+    assert not wheels_lag(X(0.04), X(-0.02), b_m, b_rad)  # the registration stepped back: it slid
+    assert not wheels_lag(X(0.04, 0.0, 0.03), X(0.04, 0.0, -0.03), b_m, b_rad)  # turned the other way
+    assert not wheels_lag(X(0.04), X(0.06), b_m, b_rad)  # within the bound: no disagreement
+    assert not wheels_lag(X(0.2), X(0.5), b_m, b_rad)  # the wheels move beyond the bound: the other test's case
+    assert not wheels_lag(X(0.0), X(0.2), None, b_rad)  # translation left out of the test
+
+
 def test_steady_wheel_odometry_is_not_second_guessed():
     """Wheel odometry that is wrong by a steady 40 % (0.12 m per scan where the robot moves 0.2 m) is
     not lumpy: ICP starts from it (0.08 m off, inside its basin), not from the constant-velocity
