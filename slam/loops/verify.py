@@ -251,23 +251,31 @@ class Verifier:
         th = np.pi  # every heading: a symmetric corridor matches itself turned round as well as straight
         radius = _UNIQUE_RADIUS_CELLS * pyr.resolution
         other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, _UNIQUE_RADIUS_RAD, floor * own)
-        if c.estimate is not None and c.max_mahalanobis2 is None:
-            # The stretch between the match and the estimate's own place, when the box around the match does
-            # not hold that place and the estimate's covariance bounds the search (not a global one, which
-            # looks where the estimate may be wrong): a match that moves the robot away from where the
-            # estimate puts it must score better than every pose on the way there (along a corridor, the
-            # right pose lies between it and its alias).
-            est = G.matrix_to_xytheta(c.estimate[0])
-            mine = G.matrix_to_xytheta(T)
-            half = np.abs(est[:2] - mine[:2]) / 2
-            if np.any(2 * half > xy - cfg.window_floor_m):
-                d_th = float(G.wrap_angle(est[2] - mine[2]))
-                mid = G.xytheta_to_matrix(np.array([*(est[:2] + mine[:2]) / 2, mine[2] + d_th / 2]))
-                near = correlative.best_elsewhere(pts, pyr, mid, float(half.max()) + cfg.window_floor_m,
-                                                  abs(d_th) / 2 + np.radians(cfg.window_floor_deg),
-                                                  T, radius, _UNIQUE_RADIUS_RAD, floor * own)
-                other = near if other is None else (other if near is None else max(other, near))
+        near = self._stretch_rival(pts, pyr, c, T, xy, radius, floor * own)
+        other = near if other is None else (other if near is None else max(other, near))
         return 0.0 if other is None else other / own
+
+    def _stretch_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, xy: float,
+                       radius: float, min_score: float) -> float | None:
+        """The best score above *min_score* on the stretch between the match *T* and the estimate's pose (plus
+        one floor window, the heading half-way), leaving out *T*'s neighbourhood; None when the ±*xy* box
+        round *T* already holds the estimate's floor window, when there is no estimate, or when the estimate's
+        covariance does not bound the search (a global one looks where the estimate may be wrong). A match
+        that moves the robot away from where the estimate puts it must score better than every pose on the
+        way there: along a corridor the right pose lies between the match and its alias."""
+        if c.estimate is None or c.max_mahalanobis2 is not None:
+            return None
+        cfg = self.config
+        est = G.matrix_to_xytheta(c.estimate[0])
+        mine = G.matrix_to_xytheta(T)
+        half = np.abs(est[:2] - mine[:2]) / 2
+        if not np.any(2 * half > xy - cfg.window_floor_m):
+            return None
+        d_th = float(G.wrap_angle(est[2] - mine[2]))
+        mid = G.xytheta_to_matrix(np.array([*(est[:2] + mine[:2]) / 2, mine[2] + d_th / 2]))
+        return correlative.best_elsewhere(pts, pyr, mid, float(half.max()) + cfg.window_floor_m,
+                                          abs(d_th) / 2 + np.radians(cfg.window_floor_deg),
+                                          T, radius, _UNIQUE_RADIUS_RAD, min_score)
 
     def _covariance(self, res: IcpResult, kj: Keyframe) -> Array:
         """ICP covariance (sensor frame) at max(a-priori, a-posteriori) residual variance, plus the floor."""
