@@ -78,8 +78,9 @@ def test_a_match_away_from_the_estimate_must_outscore_the_stretch_back_to_it():
     """Bays every 5 m along a corridor: a match one bay along the right pose has no rival within the
     uniqueness radius (three floor windows, ±3 m). When the estimate puts the robot at the right pose, that
     pose lies on the stretch between the match and the estimate and scores as well: not unique. Without an
-    estimate, with one at the match itself, or in a global search (which looks where the estimate may be
-    wrong), the radius alone decides: unique."""
+    estimate, with one at the match itself, in a global search (which looks where the estimate may be
+    wrong), or with an estimate turned by more than the heading floor (no guide to the way back), the radius
+    alone decides: unique."""
     path = [(x, 1.0, 0.0) for x in np.linspace(20.0, 60.0, 81)]
     kfs, poses = _path_and_revisit(corridor_with_bays(5.0, 80.0), path, (40.1, 1.05, np.radians(1.0)))
     j, i = len(kfs) - 1, 40  # keyframe 40 stands at x = 40
@@ -93,8 +94,9 @@ def test_a_match_away_from_the_estimate_must_outscore_the_stretch_back_to_it():
     cov = np.diag([4.0, 4.0, 0.01])
     off = G.xytheta_to_matrix(0.4, 0.1, np.radians(1.0))  # the estimate a little off the right pose
     # (max_mahalanobis2 set: a search the estimate's covariance does not bound, as the global search marks it)
+    turned = G.xytheta_to_matrix(0.4, 0.1, np.radians(10.0))  # an estimate whose heading drifted beyond the floor
     for estimate, bound, unique in ((truth @ off, None, False), (None, None, True), (alias @ off, None, True),
-                                    (truth @ off, 16.3, True)):
+                                    (truth @ off, 16.3, True), (truth @ turned, None, True)):
         cand = Candidate(i, j, Source.SPATIAL, alias, Window(8.0, np.radians(5.0)),
                          None if estimate is None else (estimate, cov), False, max_mahalanobis2=bound)
         assert v.unique(Verified(cand, alias, np.eye(3) * 1e-4, 0.9, 0.02, 0.8, 40), kfs, poses, 40) is unique

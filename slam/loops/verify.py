@@ -259,8 +259,10 @@ class Verifier:
                        radius: float, min_score: float) -> float | None:
         """The best score above *min_score* on the stretch between the match *T* and the estimate's pose (plus
         one floor window, the heading half-way), leaving out *T*'s neighbourhood; None when the ±*xy* box
-        round *T* already holds the estimate's floor window, when there is no estimate, or when the estimate's
-        covariance does not bound the search (a global one looks where the estimate may be wrong). A match
+        round *T* already holds the estimate's floor window, when the two headings differ by more than the
+        floor window (an estimate that drifted in heading is no guide to the way back), when there is no
+        estimate, or when the estimate's covariance does not bound the search (a global one looks where the
+        estimate may be wrong). A match
         that moves the robot away from where the estimate puts it must score better than every pose on the
         way there: along a corridor the right pose lies between the match and its alias."""
         if c.estimate is None or c.max_mahalanobis2 is not None:
@@ -272,6 +274,8 @@ class Verifier:
         if not np.any(2 * half > xy - cfg.window_floor_m):
             return None
         d_th = float(G.wrap_angle(est[2] - mine[2]))
+        if abs(d_th) > np.radians(cfg.window_floor_deg):
+            return None  # a corridor's alias moves the robot along its heading; an estimate turned further is no guide
         mid = G.xytheta_to_matrix(np.array([*(est[:2] + mine[:2]) / 2, mine[2] + d_th / 2]))
         return correlative.best_elsewhere(pts, pyr, mid, float(half.max()) + cfg.window_floor_m,
                                           abs(d_th) / 2 + np.radians(cfg.window_floor_deg),
