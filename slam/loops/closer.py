@@ -28,7 +28,7 @@ from core import geometry as G
 from slam.keyframes import Keyframe
 
 from . import candidates as C
-from .accept import Acceptance
+from .accept import Acceptance, Pending
 from .config import LoopConfig
 from .descriptor import SCAN_CONTEXT_3D, DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 from .local_map import LocalMaps
@@ -149,23 +149,25 @@ class LoopCloser:
         seek = sorted({k for r in self.acceptance.take_refused() for k in range(max(0, r - W), min(newest, r + W + 1))
                        if moved[k]})
         out: list[LoopClosure] = []
-        held: list = []
+        held: list[Pending] = []
         dim = 2 if self.planar else 3
         path = np.asarray(self._path_m)
-        radius_then = self._radius
-        for k in seek:
-            unc = uncertainty.from_node(k, poses[:, :dim, 3])
-            self._radius = C.overlap_radius(keyframes[k], c)
-            ref = self.verifier.reference(keyframes, poses, k)
-            for cand in C.spatial(keyframes, poses, k, unc, c, self.planar, self._radius, path):
-                self._run(cand, keyframes, poses, ref, out, held)
-        self._radius = radius_then
+        radius_then = self._radius  # _run sizes local maps by the radius of the keyframe being sought
+        try:
+            for k in seek:
+                unc = uncertainty.from_node(k, poses[:, :dim, 3])
+                self._radius = C.overlap_radius(keyframes[k], c)
+                ref = self.verifier.reference(keyframes, poses, k)
+                for cand in C.spatial(keyframes, poses, k, unc, c, self.planar, self._radius, path):
+                    self._run(cand, keyframes, poses, ref, out, held)
+        finally:
+            self._radius = radius_then
         self.stats.reseeks += len(seek)
         group = self.acceptance.decide_held(held, poses) if held else []
         return out + group, bool(group) and self.acceptance.relocalises(group, poses)
 
     def _run(self, cand: Candidate, keyframes: list[Keyframe], poses: Array, ref: Reference | None,
-             out: list[LoopClosure], held: list | None = None) -> None:
+             out: list[LoopClosure], held: list[Pending] | None = None) -> None:
         """Verify one candidate and hand a verified alignment to the acceptance stage (one it cannot vouch
         for waits in *held* when given, else in the acceptance stage's pending pool)."""
         self.stats.candidates[cand.source] += 1

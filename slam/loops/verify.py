@@ -252,7 +252,7 @@ class Verifier:
         radius = _UNIQUE_RADIUS_CELLS * pyr.resolution
         other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, _UNIQUE_RADIUS_RAD, floor * own)
         near = self._stretch_rival(pts, pyr, c, T, xy, radius, floor * own)
-        other = near if other is None else (other if near is None else max(other, near))
+        other = max((s for s in (other, near) if s is not None), default=None)
         return 0.0 if other is None else other / own
 
     def _stretch_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, xy: float,
@@ -262,9 +262,9 @@ class Verifier:
         round *T* already holds the estimate's floor window, when the two headings differ by more than the
         floor window (an estimate that drifted in heading is no guide to the way back), when there is no
         estimate, or when the estimate's covariance does not bound the search (a global one looks where the
-        estimate may be wrong). A match
-        that moves the robot away from where the estimate puts it must score better than every pose on the
-        way there: along a corridor the right pose lies between the match and its alias."""
+        estimate may be wrong). A match that moves the robot away from where the estimate puts it must score
+        better than every pose on the way there: along a corridor the right pose lies between the match and
+        its alias."""
         if c.estimate is None or c.max_mahalanobis2 is not None:
             return None
         cfg = self.config
