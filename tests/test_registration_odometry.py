@@ -260,6 +260,61 @@ def test_wheels_lag_the_scans_only_where_they_report_at_most_half_the_scans_moti
     assert not wheels_lag(X(0.0), X(0.2), None, b_rad)  # translation left out of the test
 
 
+def test_wheels_lag_only_where_they_also_drop_below_half_their_own_typical_increment():
+    """With the wheels' own typical increment over the last scans known, a lag is also a drop to at most half of
+    it. Steady slow wheels (4 cm a scan) beside a registration that slid 25 cm forward along a corridor report
+    what they always do: the slide is the registration's (before, 4 cm against 25 cm was a lag, and the
+    constant-velocity start carried the slide on). Wheels that used to report 12 cm and now 4 cm lag; a lumpy
+    odometry whose typical step or turn is nil still lags where it reports no motion at all."""
+    from registration.odometry import wheels_lag
+
+    X = lambda x, y=0.0, th=0.0: geo.xytheta_to_matrix(x, y, th)  # noqa: E731
+    b_m, b_rad = 0.05, 0.05
+    assert wheels_lag(X(0.04), X(0.25), b_m, b_rad)  # nothing known of the wheels' history: as before
+    assert not wheels_lag(X(0.04), X(0.25), b_m, b_rad, typical=(0.04, 0.0))  # steady wheels, a slid registration
+    assert not wheels_lag(X(0.04), X(0.25), b_m, b_rad, typical=(0.05, 0.0))  # within twice the step: still steady
+    assert wheels_lag(X(0.04), X(0.25), b_m, b_rad, typical=(0.12, 0.0))  # the wheels dropped to a third
+    assert wheels_lag(X(0.0), X(0.25), b_m, b_rad, typical=(0.0, 0.0))  # no motion at all is a lag whatever the history
+    assert wheels_lag(X(0.04, th=0.0), X(0.04, th=0.3), b_m, b_rad, typical=(0.04, 0.0))  # no turn, turns typically nil
+    assert not wheels_lag(X(0.04, th=0.02), X(0.04, th=0.3), b_m, b_rad, typical=(0.04, 0.02))  # a steady turn
+    assert not wheels_lag(X(0.04), X(-0.02), b_m, b_rad, typical=(0.12, 0.0))  # the registration stepped back
+
+
+def test_a_registration_jump_beside_steady_slow_wheels_takes_no_constant_velocity_start():
+    """Slow wheel odometry, right and steady at 4 cm a scan (under the 5 cm bound of the constant-velocity start),
+    and one scan taken 21 cm ahead of where the wheels put it, so that the registration jumps 25 cm there. The
+    next scan's constant-velocity increment (the jump) disagrees with the wheels; the wheels report what they
+    have been reporting all along, so they are not lumpy and ICP starts from them alone: no constant-velocity
+    start in the whole run (there were two after the jump, which carried it on)."""
+    from evaluation import sim
+    from registration.config import IcpConfig, IcpOdometryConfig
+
+    world = sim.load_world("rooms")
+    spec = sim.LASER_PRESETS["sick_lms"]
+    ang = spec.angles()
+    n, jump = 14, 8
+    x = 4.5 + 0.04 * np.arange(n)
+    cast = x + np.where(np.arange(n) == jump, 0.21, 0.0)
+    truth = np.column_stack([cast, np.full(n, 3.0), np.zeros(n)])
+    iy, ix = world.cell_of(truth[:, :2])
+    assert world.free[iy, ix].all()
+    R = sim.cast_rays(world, truth, spec, rng=np.random.default_rng(3), range_noise=0.01)
+    frames = []
+    for k in range(n):
+        ok = np.isfinite(R[k])
+        pts = np.column_stack([R[k][ok] * np.cos(ang[ok]), R[k][ok] * np.sin(ang[ok])])
+        frames.append(Frame(stamp=0.1 * k, points=pts, index=k, angles=ang, ranges=R[k],
+                            odom=geo.xytheta_to_matrix(0.04 * k, 0.0, 0.0)))
+    icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
+    odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
+                                        max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
+                                        alternative_start_m=0.05, alternative_start_rad=0.05))
+    odo.run(frames)
+    travelled = odo.poses()[:, 0, 3]
+    assert travelled[jump] - travelled[jump - 1] > 0.2  # the registration did jump
+    assert odo.alternative_starts == 0
+
+
 def test_steady_wheel_odometry_is_not_second_guessed():
     """Wheel odometry that is wrong by a steady 40 % (0.12 m per scan where the robot moves 0.2 m) is
     not lumpy: ICP starts from it (0.08 m off, inside its basin), not from the constant-velocity
