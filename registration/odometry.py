@@ -42,6 +42,7 @@ from .icp import icp
 from .point_to_plane import PosePrior, icp_point_to_plane
 from .target import IcpTarget
 from .voxel import voxel_downsample
+from .wheel_lag import WheelSpeeds, wheels_lag
 
 Array = NDArray[np.float64]
 
@@ -93,38 +94,6 @@ def planar_pose(T: Array) -> Array:
 def _crop(points: Array, min_range: float, max_range: float) -> Array:
     r = np.linalg.norm(points, axis=1)
     return points[(r >= min_range) & (r <= max_range)]
-
-
-_STALE_M = 1e-3  # slack of the lag test: a wheel increment this small is no motion at all
-_STALE_RAD = 1e-3
-_WHEEL_HISTORY = 10  # scans over which the wheels' own typical increment is taken (their median speed)
-
-
-def wheels_lag(wheel: Array, scans: Array, bound_m: float | None, bound_rad: float | None,
-               typical: tuple[float, float] | None = None) -> bool:
-    """Whether the wheel increment *wheel* lags the scans' own last increment *scans* (both ``prev_T_curr``):
-    the wheels report less than the bounds' motion, and in a part where they disagree with the scans by
-    more than its bound (translation *bound_m*, rotation *bound_rad*; None leaves a part out) they report
-    at most half the scans' motion (+1 mm / 0.001 rad) — no turn while the scans turned, a gap the wheel
-    pose barely crossed. Slow, steady wheels beside a registration that stopped or went the other way do
-    not lag: there it is the registration that slid.
-
-    *typical* is the wheels' own typical increment over the last scans (translation m, rotation rad, scaled
-    to this interval; None: unknown). A lag is also a drop to at most half of it: lagging wheels report less
-    than they have been reporting, while steady wheels beside a registration that slid forward along a
-    corridor report what they always do (a lumpy odometry's typical turn or step may be nil; then only no
-    motion at all is a lag)."""
-    def small(T: Array) -> tuple[float, float]:
-        return float(np.linalg.norm(T[:3, 3])), geo.rotation_angle(T[:3, :3])
-
-    w_m, w_rad = small(wheel)
-    s_m, s_rad = small(scans)
-    d_m, d_rad = small(geo.relative(wheel, scans))
-    t_m, t_rad = typical if typical is not None else (np.inf, np.inf)
-    if (bound_m is not None and w_m > bound_m) or (bound_rad is not None and w_rad > bound_rad):
-        return False
-    return bool((bound_m is not None and d_m > bound_m and w_m <= 0.5 * min(s_m, t_m) + _STALE_M)
-                or (bound_rad is not None and d_rad > bound_rad and w_rad <= 0.5 * min(s_rad, t_rad) + _STALE_RAD))
 
 
 class Odometry(abc.ABC):
@@ -213,8 +182,7 @@ class IcpOdometry(Odometry):
         self._pyramid = None  # likelihood pyramid of the current map (the search without wheel odometry), likewise
         self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
         self._prev_wheel: tuple[Array, float] | None = None  # previous wheel increment and its interval (s)
-        # the last wheel increments as speeds (m/s, rad/s), for the wheels' typical increment of the lag test
-        self._wheel_speeds: deque[tuple[float, float]] = deque(maxlen=_WHEEL_HISTORY)
+        self._wheel_speeds = WheelSpeeds()  # the wheels' typical increment, for the lag test
         g = self.config.first_step_gate_m  # the first registration without wheels: a wider gate first
         self._first_icp = (self.config.icp.model_copy(update={"gates_m": (g,) + tuple(self.config.icp.gates_m)})
                            if g is not None and g > self.config.icp.gates_m[0] else None)
@@ -244,20 +212,12 @@ class IcpOdometry(Odometry):
             return self._last_delta
         return geo.se3_exp(geo.se3_log(self._last_delta) * min(ratio, _MAX_INTERVAL_RATIO))
 
-    def _typical_wheel_increment(self, dt: float) -> tuple[float, float] | None:
-        """The wheels' median speed over their last increments (at least 3) times *dt* s: their typical
-        step (m) and turn (rad) over this interval, or None."""
-        if len(self._wheel_speeds) < 3 or dt <= 0:
-            return None
-        m, rad = np.median(np.asarray(self._wheel_speeds), axis=0) * dt
-        return float(m), float(rad)
-
     def _alternative_start(self, frame: Frame, prediction: Array) -> Array | None:
         """The constant-velocity increment (scaled to this scan interval) when the wheel odometry is
         lumpy here, else None: the wheel prediction disagrees by more than the configured bounds with
-        it, and it lags the scans (:func:`wheels_lag`, against its typical increment over the last
-        ``_WHEEL_HISTORY`` scans too) or differs as much from the previous wheel increment (scaled to
-        this scan interval). Wheel odometry that lost a gap of the log (the wheel
+        it, and it lags the scans (:func:`~registration.wheel_lag.wheels_lag`, against its typical
+        increment over the last scans too) or differs as much from the previous wheel increment (scaled
+        to this scan interval). Wheel odometry that lost a gap of the log (the wheel
         pose barely moved while the scans did) is lumpy in this sense.
 
         The second test keeps smooth wheel odometry in charge: after an ICP slide along a corridor the
@@ -270,10 +230,8 @@ class IcpOdometry(Odometry):
             return None
         dt = frame.stamp - self._prev_frame.stamp
         self._prev_wheel = (prediction, dt)
-        typical = self._typical_wheel_increment(dt)
-        if dt > 0:
-            self._wheel_speeds.append((float(np.linalg.norm(prediction[:3, 3])) / dt,
-                                       geo.rotation_angle(prediction[:3, :3]) / dt))
+        typical = self._wheel_speeds.typical(dt)
+        self._wheel_speeds.append(prediction, dt)
         constant_velocity = self._constant_velocity(dt)
         if not self._disagree(prediction, constant_velocity):
             return None

@@ -246,7 +246,7 @@ def test_wheels_lag_the_scans_only_where_they_report_at_most_half_the_scans_moti
     scan beside a registration that stopped or stepped back is the registration's slide, not a lag (below
     0.5 m/s at 10 Hz every wheel increment is under the 5 cm bound, so "under the bound" alone called every
     slow robot's wheels stale)."""
-    from registration.odometry import wheels_lag
+    from registration.wheel_lag import wheels_lag
 
     X = lambda x, y=0.0, th=0.0: geo.xytheta_to_matrix(x, y, th)  # noqa: E731
     b_m, b_rad = 0.05, 0.05
@@ -266,7 +266,7 @@ def test_wheels_lag_only_where_they_also_drop_below_half_their_own_typical_incre
     what they always do: the slide is the registration's (before, 4 cm against 25 cm was a lag, and the
     constant-velocity start carried the slide on). Wheels that used to report 12 cm and now 4 cm lag; a lumpy
     odometry whose typical step or turn is nil still lags where it reports no motion at all."""
-    from registration.odometry import wheels_lag
+    from registration.wheel_lag import wheels_lag
 
     X = lambda x, y=0.0, th=0.0: geo.xytheta_to_matrix(x, y, th)  # noqa: E731
     b_m, b_rad = 0.05, 0.05
