@@ -94,6 +94,20 @@ def corridor_with_bays(period: float = 5.0, length: float = 80.0) -> World:
     return World(occ, np.ones_like(occ), RES, origin, "test_corridor_bays")
 
 
+def bays_round_a_corner(period: float = 5.0, length: float = 40.0, side: float = 20.0) -> World:
+    """A 2 m corridor *length* m east, with 2 m wide, 0.8 m deep bays in both walls every *period* metres from
+    7.5 m on, entered at its west end from a plain 2 m corridor *side* m long running north: along the bays
+    every place looks like the ones *period* metres on; the way in, round the corner, does not."""
+    occ, xs, ys, origin = _grid(length, side)
+    occ[:] = True
+    occ[np.ix_((ys > 0.0) & (ys < 2.0), (xs > 0.0) & (xs < length))] = False
+    occ[np.ix_((ys > 0.0) & (ys < side), (xs > 0.0) & (xs < 2.0))] = False
+    for x in np.arange(7.5, length - 1.0, period):
+        occ[np.ix_((ys > -0.8) & (ys <= 0.0), (xs > x - 1.0) & (xs < x + 1.0))] = False
+        occ[np.ix_((ys >= 2.0) & (ys < 2.8), (xs > x - 1.0) & (xs < x + 1.0))] = False
+    return World(occ, np.ones_like(occ), RES, origin, "test_bays_round_a_corner")
+
+
 def keyframes(world: World, xyt: list[tuple[float, float, float]], seed: int = 0, laser: LaserSpec = LASER,
               first_id: int = 0) -> list[Keyframe]:
     """A keyframe per pose ``(x, y, θ)`` (base = sensor), scanned in *world*; ``odom_pose`` is the true pose;

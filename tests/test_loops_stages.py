@@ -487,6 +487,26 @@ def test_a_group_contradicted_by_a_closure_accepted_alone_nearby_is_refused():
     assert acc.stats.groups_contradicted == 1
 
 
+def test_an_agreeing_group_its_context_check_refuses_expires_and_is_counted():
+    """The acceptance stage's last word goes to its ``confirm`` hook (the closer's context check): the same
+    five agreeing closures as above are refused when it says no — with the group it was handed — and accepted
+    when it says yes."""
+    truth = _corridor_truth()
+    for verdict in (False, True):
+        rng = np.random.default_rng(4)
+        est, verified = _return(truth, G.xytheta_to_matrix(2.0, -0.5, np.radians(12)), rng)
+        acc = _acceptance(step_cov=1e-5)
+        asked: list[list[int]] = []
+        acc.confirm = lambda group, poses, verdict=verdict: asked.append(sorted(lc.j for lc in group)) or verdict
+        for v in verified:
+            acc.consider(v, _keyframes(60), _line(60), lambda v: True)
+        group = acc.decide(30 + LoopConfig().group_window_keyframes - 1, est)
+        assert asked == [[30, 31, 32, 33, 34]]
+        assert len(group) == (5 if verdict else 0)
+        assert acc.stats.groups_out_of_context == (0 if verdict else 1)
+        assert acc.stats.pending_expired == (0 if verdict else 5)
+
+
 def test_the_maximum_consistent_set_is_the_maximum_clique():
     """On random consistency graphs the exact search finds a clique as large as brute force does."""
     rng = np.random.default_rng(0)

@@ -100,6 +100,8 @@ class Acceptance:
         self.recent: list[LoopClosure] = []  # accepted on their own, within the group window
         self.beyond: list[tuple[LoopClosure, int]] = []  # global matches beyond the gate (closure, map half)
         self.refused: list[int] = []  # new keyframes of unique global matches refused beyond the gate, newest last
+        #: a group's last word after its pairwise test (the closer's :func:`~slam.loops.context.context_agrees`)
+        self.confirm: Callable[[list[LoopClosure], Array], bool] | None = None
 
     def consider(self, v: Verified, keyframes: list[Keyframe], poses: Array,
                  unique: Callable[[Verified], bool], hold: list[Pending] | None = None) -> LoopClosure | None:
@@ -163,13 +165,15 @@ class Acceptance:
 
     def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The largest pairwise-consistent subset of *closures*, accepted as a group when it spans
-        ``group_min_size`` new keyframes and no closure accepted alone nearby contradicts it (else empty);
-        the rest expire."""
+        ``group_min_size`` new keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm`
+        (when set) agrees (else empty); the rest expire."""
         group = self._max_consistent_set(closures, poses)
         accepted: list[LoopClosure] = []
         if len({lc.j for lc in group}) >= self.config.group_min_size:
             if self._contradicted(group, poses):
                 self.stats.groups_contradicted += 1
+            elif self.confirm is not None and not self.confirm(group, poses):
+                self.stats.groups_out_of_context += 1
             else:
                 accepted = group
         members = {id(lc) for lc in accepted}

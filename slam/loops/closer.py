@@ -11,7 +11,8 @@
    heights for a 3D LiDAR); and a global search of one place within reach that no spatial window could
    cover, the one that looks most like the new keyframe first (2D, every ``global_every_keyframes``);
 4. the group decision over the pending closures whose window has passed (at the end of the log, over
-   the windows still open: :meth:`LoopCloser.close_open_window`);
+   the windows still open: :meth:`LoopCloser.close_open_window`), a group's last word going to its
+   recent path matched as a whole on the old place (2D, :mod:`slam.loops.context`);
 5. after a group relocalised the graph, the keyframes around the global matches the estimate had refused
    are sought again under the corrected estimate (:meth:`LoopCloser.reseek`).
 
@@ -30,6 +31,7 @@ from slam.keyframes import Keyframe
 from . import candidates as C
 from .accept import Acceptance, Pending
 from .config import LoopConfig
+from .context import context_agrees
 from .descriptor import SCAN_CONTEXT_3D, DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 from .local_map import LocalMaps
 from .surroundings import Surroundings
@@ -50,6 +52,9 @@ class LoopCloser:
         self.maps = LocalMaps()
         self.verifier = Verifier(config, planar, self.maps)
         self.acceptance = Acceptance(config, planar, uncertainty, self.stats)
+        self._keyframes: list[Keyframe] = []  # the keyframes of the last detect or reseek (a group's context)
+        if planar:
+            self.acceptance.confirm = self._context_agrees
         self.index = (DescriptorIndex(PolarDescriptorConfig() if planar else SCAN_CONTEXT_3D)
                       if config.descriptor else None)
         self._path_m: list[float] = []  # cumulative odometry path length at each keyframe
@@ -92,6 +97,7 @@ class LoopCloser:
         *uncertainty* relative to *j*; and whether they include a group (the graph must be relocalised)."""
         c = self.config
         kj = keyframes[j]
+        self._keyframes = keyframes
         step = 0.0 if j == 0 else float(np.linalg.norm(G.relative(keyframes[j - 1].odom_pose, kj.odom_pose)[:3, 3]))
         self._path_m.append((self._path_m[-1] if self._path_m else 0.0) + step)
         if not c.enabled:
@@ -130,6 +136,20 @@ class LoopCloser:
             return None
         return group, bool(group) and self.acceptance.relocalises(group, poses)
 
+    def _context_agrees(self, group: list[LoopClosure], poses: Array) -> bool:
+        """The group's recent path, matched as a whole on its old place, lands where it says (:mod:`.context`),
+        when its best pose scores at least ``min_relative_score`` of what the newest keyframe's scan scores on
+        its own preceding map (the bar a single closure's search must clear)."""
+        c = self.config
+        j = max(lc.j for lc in group)
+        ref = self.verifier.reference(self._keyframes, poses, j)
+        own = 0.0
+        if ref is not None:
+            pts = self._keyframes[j].points
+            own = ref.score(self.maps, pts[np.hypot(pts[:, 0], pts[:, 1]) <= c.correlative_max_range_m],
+                            c.correlative_resolution_m)
+        return context_agrees(group, self._keyframes, poses, np.asarray(self._path_m), c, c.min_relative_score * own)
+
     @property
     def refused(self) -> bool:
         """Whether global matches were refused beyond the gate since the last :meth:`reseek`."""
@@ -144,6 +164,7 @@ class LoopCloser:
         was off by more than it knew, so its revisits were sought in the wrong place; the refused match says
         one was there. Returns the closures and whether they relocalise the graph."""
         c = self.config
+        self._keyframes = keyframes
         W = c.group_window_keyframes
         newest = len(keyframes) - 1
         seek = sorted({k for r in self.acceptance.take_refused() for k in range(max(0, r - W), min(newest, r + W + 1))

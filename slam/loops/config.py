@@ -58,6 +58,8 @@ class LoopConfig(BaseModel):
     ambiguity_ratio: float = Field(0.9, gt=0, le=1, description="a closure the estimate cannot vouch for must be unique: the best correlative score outside its neighbourhood must stay below this fraction of its own")
     group_min_size: int = Field(3, ge=2, description="closures the estimate cannot vouch for are accepted together when this many, from as many keyframes, agree pairwise (PCM, Mangelson et al. 2018)")
     group_window_keyframes: int = Field(10, ge=1, description="pending closures wait this many keyframes for a group, and a group is decided once its window has passed")
+    group_context_path_m: float | None = Field(20.0, gt=0, description="2D: before a group is accepted, the keyframes of this much path up to its newest member are matched as one cloud on the old place's surroundings (as much path either side of its old keyframes); the group is refused when that cloud fits clearly better (ambiguity_ratio) more than a floor window from the group's pose — a corridor's alias repeats for a scan, not for the path that led there. None: off")
+    group_context_window_m: float = Field(6.0, gt=0, description="± m (x and y) of that search round the group's pose: twice the uniqueness test's ±3 floor windows")
     relocalise_sigmas: float = Field(10.0, gt=0, description="an accepted group with a member this many σ (per degree of freedom) from the estimate moves the graph by a batch solve without kernels first: the Cauchy kernel (scale 1σ) leaves a closure that far 1 % of its weight")
     # ------------------------------------------------------------------ closures in the back end
     robust_kernel: Literal["none", "huber", "cauchy", "gm"] = "cauchy"

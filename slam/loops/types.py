@@ -124,6 +124,7 @@ class LoopStats:
     accepted_as_group: int = 0  # accepted as members of an agreeing group
     pending_expired: int = 0  # pending closures whose window passed without a group
     groups_contradicted: int = 0  # groups refused because an accepted closure nearby disagrees
+    groups_out_of_context: int = 0  # groups refused because the recent path, matched as a whole, lands elsewhere
     global_searches: int = 0
     corroborated: int = 0  # global matches beyond the estimate's gate held for a group because another agreed
     reseeks: int = 0  # keyframes sought again after a relocalisation (around refused global matches)
@@ -134,5 +135,5 @@ class LoopStats:
         d |= {f"candidates_{s.value}": self.candidates[s] for s in Source}
         d |= {r.value: self.rejections[r] for r in Rejection}
         d |= {k: getattr(self, k) for k in ("verified", "accepted", "accepted_as_group", "pending_expired",
-                                             "groups_contradicted", "global_searches", "corroborated", "reseeks")}
+                                             "groups_contradicted", "groups_out_of_context", "global_searches", "corroborated", "reseeks")}
         return d

@@ -1,0 +1,65 @@
+"""The group's last word (slam/loops/context.py): the recent path, matched as a whole on the old place."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core import geometry as G
+from slam.loops.config import LoopConfig
+from slam.loops.context import context_agrees
+from slam.loops.types import LoopClosure
+
+from tests.loop_scenes import bays_round_a_corner, keyframes
+
+
+def _route(east_to: float) -> list[tuple[float, float, float]]:
+    """Down the side corridor heading south, round the corner, east along the bays to *east_to* (0.5 m steps)."""
+    down = [(1.0, y, -np.pi / 2) for y in np.arange(18.0, 1.0, -0.5)]
+    turn = [(1.0, 1.0, -np.pi / 4)]
+    east = [(x, 1.0, 0.0) for x in np.arange(1.5, east_to + 1e-9, 0.5)]
+    return down + turn + east
+
+
+def _scene():
+    world = bays_round_a_corner()
+    old_xyt, new_xyt = _route(36.0), _route(14.0)
+    kfs = keyframes(world, old_xyt, seed=1) + keyframes(world, new_xyt, seed=2, first_id=len(old_xyt))
+    poses = np.array([k.odom_pose for k in kfs])
+    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
+    step[len(old_xyt)] = 50.0  # the robot went elsewhere between the passes
+    return kfs, poses, np.cumsum(step), np.array(old_xyt)
+
+
+def _group(kfs, poses, old_xyt, shift_m: float) -> list[LoopClosure]:
+    """Closures of the last three keyframes, each to the old keyframe 5 m farther east, that place the new
+    keyframe *shift_m* east of where it is (0: the truth; 5: the bays' alias, where each scan fits as well)."""
+    out = []
+    for j in range(len(kfs) - 3, len(kfs)):
+        x = poses[j][0, 3] + 5.0
+        i = int(np.argmin(np.hypot(old_xyt[:, 0] - x, old_xyt[:, 1] - 1.0)))
+        claimed = G.xytheta_to_matrix(poses[j][0, 3] + shift_m, poses[j][1, 3], 0.0)
+        out.append(LoopClosure(i, j, G.relative(poses[i], claimed), np.eye(3) * 1e-4, 0.9, 0.02, "spatial", True))
+    return out
+
+
+def test_a_group_along_repeating_bays_stands_only_where_the_way_in_fits_too():
+    """A return along a corridor of bays every 5 m, entered round the same corner as the old pass. A group that
+    puts it 5 m along (each scan fits the bays there as well as at the truth) is refused: the 20 m of path that
+    led there, matched as one cloud on the old place, fits best 5 m back, where its corner meets the old
+    corner. The group at the truth stands; with the test off, so does the alias."""
+    kfs, poses, path, old_xyt = _scene()
+    cfg = LoopConfig()
+    assert context_agrees(_group(kfs, poses, old_xyt, 0.0), kfs, poses, path, cfg)
+    assert not context_agrees(_group(kfs, poses, old_xyt, 5.0), kfs, poses, path, cfg)
+    assert context_agrees(_group(kfs, poses, old_xyt, 0.3), kfs, poses, path, cfg)  # within a floor window
+    off = cfg.model_copy(update={"group_context_path_m": None})
+    assert context_agrees(_group(kfs, poses, old_xyt, 5.0), kfs, poses, path, off)
+
+
+def test_a_group_with_no_path_of_its_own_since_the_old_place_is_left_to_the_other_tests():
+    """When the newest old keyframe lies within the last quarter of the context path (a short loop), the recent
+    path holds the old place itself: the test has nothing to add and agrees, alias or not."""
+    kfs, poses, path, old_xyt = _scene()
+    short = [LoopClosure(len(kfs) - 4, j, G.relative(poses[len(kfs) - 4], poses[j]) @ G.xytheta_to_matrix(5.0, 0.0, 0.0),
+                         np.eye(3) * 1e-4, 0.9, 0.02, "spatial", True) for j in range(len(kfs) - 3, len(kfs))]
+    assert context_agrees(short, kfs, poses, path, LoopConfig())
