@@ -280,22 +280,17 @@ def test_wheels_lag_only_where_they_also_drop_below_half_their_own_typical_incre
     assert not wheels_lag(X(0.04), X(-0.02), b_m, b_rad, typical=(0.12, 0.0))  # the registration stepped back
 
 
-def test_a_registration_jump_beside_steady_slow_wheels_takes_no_constant_velocity_start():
-    """Slow wheel odometry, right and steady at 4 cm a scan (under the 5 cm bound of the constant-velocity start),
-    and one scan taken 21 cm ahead of where the wheels put it, so that the registration jumps 25 cm there. The
-    next scan's constant-velocity increment (the jump) disagrees with the wheels; the wheels report what they
-    have been reporting all along, so they are not lumpy and ICP starts from them alone: no constant-velocity
-    start in the whole run (there were two after the jump, which carried it on)."""
+def _rooms_odometry(cast_x: np.ndarray, wheel_step_m: float) -> IcpOdometry:
+    """Our ICP odometry run over scans cast in the simulator's rooms at x = *cast_x* (y 3 m, heading 0, a scan
+    every 0.1 s), with wheel odometry advancing *wheel_step_m* a scan; constant-velocity start bounds 5 cm / 0.05 rad."""
     from evaluation import sim
     from registration.config import IcpConfig, IcpOdometryConfig
 
     world = sim.load_world("rooms")
     spec = sim.LASER_PRESETS["sick_lms"]
     ang = spec.angles()
-    n, jump = 14, 8
-    x = 4.5 + 0.04 * np.arange(n)
-    cast = x + np.where(np.arange(n) == jump, 0.21, 0.0)
-    truth = np.column_stack([cast, np.full(n, 3.0), np.zeros(n)])
+    n = len(cast_x)
+    truth = np.column_stack([cast_x, np.full(n, 3.0), np.zeros(n)])
     iy, ix = world.cell_of(truth[:, :2])
     assert world.free[iy, ix].all()
     R = sim.cast_rays(world, truth, spec, rng=np.random.default_rng(3), range_noise=0.01)
@@ -304,12 +299,24 @@ def test_a_registration_jump_beside_steady_slow_wheels_takes_no_constant_velocit
         ok = np.isfinite(R[k])
         pts = np.column_stack([R[k][ok] * np.cos(ang[ok]), R[k][ok] * np.sin(ang[ok])])
         frames.append(Frame(stamp=0.1 * k, points=pts, index=k, angles=ang, ranges=R[k],
-                            odom=geo.xytheta_to_matrix(0.04 * k, 0.0, 0.0)))
+                            odom=geo.xytheta_to_matrix(wheel_step_m * k, 0.0, 0.0)))
     icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
     odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
                                         max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
                                         alternative_start_m=0.05, alternative_start_rad=0.05))
     odo.run(frames)
+    return odo
+
+
+def test_a_registration_jump_beside_steady_slow_wheels_takes_no_constant_velocity_start():
+    """Slow wheel odometry, right and steady at 4 cm a scan (under the 5 cm bound of the constant-velocity start),
+    and one scan taken 21 cm ahead of where the wheels put it, so that the registration jumps 25 cm there. The
+    next scan's constant-velocity increment (the jump) disagrees with the wheels; the wheels report what they
+    have been reporting all along, so they are not lumpy and ICP starts from them alone: no constant-velocity
+    start in the whole run (there were two after the jump, which carried it on)."""
+    n, jump = 14, 8
+    x = 4.5 + 0.04 * np.arange(n)
+    odo = _rooms_odometry(x + np.where(np.arange(n) == jump, 0.21, 0.0), 0.04)
     travelled = odo.poses()[:, 0, 3]
     assert travelled[jump] - travelled[jump - 1] > 0.2  # the registration did jump
     assert odo.alternative_starts == 0
@@ -320,29 +327,8 @@ def test_steady_wheel_odometry_is_not_second_guessed():
     not lumpy: ICP starts from it (0.08 m off, inside its basin), not from the constant-velocity
     increment, which after a corridor slide would carry the slide into the next scan (Freiburg
     hospital). The trajectory still follows the truth, not the wheels."""
-    from evaluation import sim
-    from registration.config import IcpConfig, IcpOdometryConfig
-
-    world = sim.load_world("rooms")
-    spec = sim.LASER_PRESETS["sick_lms"]
-    ang = spec.angles()
-    n = 12
-    x = 4.5 + 0.2 * np.arange(n)
-    truth = np.column_stack([x, np.full(n, 3.0), np.zeros(n)])
-    iy, ix = world.cell_of(truth[:, :2])
-    assert world.free[iy, ix].all()
-    R = sim.cast_rays(world, truth, spec, rng=np.random.default_rng(3), range_noise=0.01)
-    frames = []
-    for k in range(n):
-        ok = np.isfinite(R[k])
-        pts = np.column_stack([R[k][ok] * np.cos(ang[ok]), R[k][ok] * np.sin(ang[ok])])
-        frames.append(Frame(stamp=0.1 * k, points=pts, index=k, angles=ang, ranges=R[k],
-                            odom=geo.xytheta_to_matrix(0.12 * k, 0.0, 0.0)))
-    icp_cfg = IcpConfig(gates_m=(0.3,), max_iterations=30, robust="cauchy", robust_scale_m=0.05, workers=1)
-    odo = IcpOdometry(IcpOdometryConfig(icp=icp_cfg, point_to_plane=True, map_voxel_m=0.03,
-                                        max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35,
-                                        alternative_start_m=0.05, alternative_start_rad=0.05))
-    odo.run(frames)
+    x = 4.5 + 0.2 * np.arange(12)
+    odo = _rooms_odometry(x, 0.12)
     assert odo.alternative_starts == 1  # the first step only: no earlier wheel increment to compare with
     travelled = odo.poses()[:, 0, 3]
     np.testing.assert_allclose(travelled, x - x[0], atol=0.03)
