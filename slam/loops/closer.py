@@ -140,15 +140,9 @@ class LoopCloser:
         """The group's recent path, matched as a whole on its old place, lands where it says (:mod:`.context`),
         when its best pose scores at least ``min_relative_score`` of what the newest keyframe's scan scores on
         its own preceding map (the bar a single closure's search must clear)."""
-        c = self.config
-        j = max(lc.j for lc in group)
-        ref = self.verifier.reference(self._keyframes, poses, j)
-        own = 0.0
-        if ref is not None:
-            pts = self._keyframes[j].points
-            own = ref.score(self.maps, pts[np.hypot(pts[:, 0], pts[:, 1]) <= c.correlative_max_range_m],
-                            c.correlative_resolution_m)
-        return context_agrees(group, self._keyframes, poses, np.asarray(self._path_m), c, c.min_relative_score * own)
+        own = self.verifier.own_score(self._keyframes, poses, max(lc.j for lc in group))
+        return context_agrees(group, self._keyframes, poses, np.asarray(self._path_m), self.config,
+                              self.config.min_relative_score * own)
 
     @property
     def refused(self) -> bool:

@@ -33,8 +33,8 @@ from .types import LoopClosure
 
 Array = NDArray[np.float64]
 
-_MIN_OWN_PATH = 0.25  # a recent path shorter than this fraction of group_context_path_m adds nothing to the group
 _PYRAMID_LEVELS = 5  # as the verifier's: 2^5 cells per top block
+_MIN_OWN_PATH = 0.25  # a recent path shorter than this fraction of group_context_path_m adds nothing to the group
 
 
 def _cloud(keyframes: list[Keyframe], poses: Array, ref: int, members: list[int]) -> Array:

@@ -118,6 +118,17 @@ class Verifier:
             return None
         return Reference(res.fitness, res.rmse, _sigma2(res), res.covariance, lm, pose)
 
+    def search_points(self, kj: Keyframe) -> Array:
+        """Keyframe *kj*'s scan points the correlative search uses (within ``correlative_max_range_m``)."""
+        pts = kj.points
+        return pts[np.hypot(pts[:, 0], pts[:, 1]) <= self.config.correlative_max_range_m]
+
+    def own_score(self, keyframes: list[Keyframe], poses: Array, j: int) -> float:
+        """What keyframe *j*'s scan scores on its own preceding local map at the spatial search's resolution
+        (what a true match of it scores; 0 without a :class:`Reference`)."""
+        ref = self.reference(keyframes, poses, j)
+        return 0.0 if ref is None else ref.score(self.maps, self.search_points(keyframes[j]), self.config.correlative_resolution_m)
+
     # ------------------------------------------------------------------ verification
     def verify(self, c: Candidate, keyframes: list[Keyframe], poses: Array, half: int,
                ref: Reference | None, features: dict | None = None) -> Verified | Rejection:
@@ -143,7 +154,7 @@ class Verifier:
         try:
             if self.planar and cfg.correlative:
                 pyr = self.maps.pyramid(lm, resolution, _PYRAMID_LEVELS)
-                pts = kj.points[np.hypot(kj.points[:, 0], kj.points[:, 1]) <= cfg.correlative_max_range_m]
+                pts = self.search_points(kj)
                 own = ref.score(self.maps, pts, resolution) if ref is not None else 0.0
                 need = cfg.min_relative_score * own
                 found = correlative.match(pts, pyr, c.guess, c.window.xy_m, c.window.theta_rad,
@@ -207,8 +218,7 @@ class Verifier:
         lm = self.maps.get(keyframes, poses, c.i, half)
         resolution = cfg.global_resolution_m if c.source is Source.GLOBAL else cfg.correlative_resolution_m
         pyr = self.maps.pyramid(lm, resolution, _PYRAMID_LEVELS)
-        pts = keyframes[c.j].points
-        pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= cfg.correlative_max_range_m]
+        pts = self.search_points(keyframes[c.j])
         try:
             return self._elsewhere_ratio(pts, pyr, c, v.transform, cfg.ambiguity_ratio) < cfg.ambiguity_ratio
         except DegenerateInputError:
