@@ -6,7 +6,8 @@ import numpy as np
 
 from core import geometry as G
 from slam.loops.config import LoopConfig
-from slam.loops.context import context_agrees
+from registration import correlative
+from slam.loops.context import context_agrees, path_unique
 from slam.loops.types import LoopClosure
 
 from tests.loop_scenes import bays_round_a_corner, keyframes
@@ -63,3 +64,36 @@ def test_a_group_with_no_path_of_its_own_since_the_old_place_is_left_to_the_othe
     short = [LoopClosure(len(kfs) - 4, j, G.relative(poses[len(kfs) - 4], poses[j]) @ G.xytheta_to_matrix(5.0, 0.0, 0.0),
                          np.eye(3) * 1e-4, 0.9, 0.02, "spatial", True) for j in range(len(kfs) - 3, len(kfs))]
     assert context_agrees(short, kfs, poses, path, LoopConfig())
+
+
+def test_a_closure_its_scan_cannot_place_along_repeating_bays_is_unique_on_the_path_that_led_there():
+    """Bays every 2.5 m: the newest scan, 9 m past the corner (a 180° laser looking ahead), fits the old pass 2.5 m along almost as well as at
+    the truth (its own uniqueness test fails), but its last 20 m of path, round the corner, fits only at the
+    truth. A closure at the truth is unique on the path; one at the alias is not, nor is any closure with the
+    test off or a path that scores below the bar a scan must clear."""
+    world = bays_round_a_corner(period=2.5)
+    old_xyt, new_xyt = _route(36.0), _route(10.0)
+    kfs = keyframes(world, old_xyt, seed=1) + keyframes(world, new_xyt, seed=2, first_id=len(old_xyt))
+    poses = np.array([k.odom_pose for k in kfs])
+    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
+    step[len(old_xyt)] = 50.0
+    path = np.cumsum(step)
+    j = len(kfs) - 1
+    i = int(np.argmin(np.hypot(np.array(old_xyt)[:, 0] - 10.0, np.array(old_xyt)[:, 1] - 1.0)))
+    scan = kfs[j].points[:, :2]
+    old_map = np.vstack([G.transform_points(G.relative(poses[i], poses[m]), kfs[m].points)[:, :2]
+                         for m in range(i - 6, i + 7)])
+    field = correlative.LikelihoodPyramid(old_map, 0.1, 0.1, levels=5)
+    truth = G.relative(poses[i], poses[j])
+    own = correlative.score_at(scan, field, truth)
+    rival = correlative.best_elsewhere(scan, field, truth, 3.0, np.pi, truth, 0.3, np.radians(3.0), 0.9 * own)
+    assert rival is not None  # the scan alone is ambiguous: the verifier's uniqueness test refuses it
+    cfg = LoopConfig()
+
+    def closure(shift_m: float) -> LoopClosure:
+        return LoopClosure(i, j, truth @ G.xytheta_to_matrix(shift_m, 0.0, 0.0), np.eye(3) * 1e-4, 0.9, 0.02, "spatial")
+
+    assert path_unique(closure(0.0), kfs, poses, path, cfg, 0.5 * own)
+    assert not path_unique(closure(2.5), kfs, poses, path, cfg, 0.5 * own)
+    assert not path_unique(closure(0.0), kfs, poses, path, cfg.model_copy(update={"group_context_path_m": None}), 0.0)
+    assert not path_unique(closure(0.0), kfs, poses, path, cfg, 2.0)

@@ -507,6 +507,61 @@ def test_an_agreeing_group_its_context_check_refuses_expires_and_is_counted():
         assert acc.stats.pending_expired == (0 if verdict else 5)
 
 
+def _two_passes_truth(K: int = 60) -> np.ndarray:
+    """Keyframes 0–4, 20–24 and 30–34 pass one corridor stretch (0.5 m apart); 5–19 and 25–29 loop round a 10 m
+    circle in between."""
+    truth = _corridor_truth(K)
+    a = np.linspace(-np.pi / 2, 1.5 * np.pi, 17)[1:-1]
+    truth[5:20] = [G.xytheta_to_matrix(2.5 + 10 * np.cos(t), 10 + 10 * np.sin(t), t + np.pi / 2) for t in a]
+    truth[20:25] = [G.xytheta_to_matrix(0.5 * (k - 20) + 0.1, 0.2, 0.02) for k in range(20, 25)]
+    b = np.linspace(-np.pi / 2, 1.5 * np.pi, 7)[1:-1]
+    truth[25:30] = [G.xytheta_to_matrix(2.5 + 10 * np.cos(t), 10 + 10 * np.sin(t), t + np.pi / 2) for t in b]
+    return truth
+
+
+def _closures(truth: np.ndarray, pairs, rng, offset: np.ndarray | None = None) -> list[Verified]:
+    """Unvouched closures of keyframe pairs measured from *truth* (1 cm, 0.1° noise), moved by *offset*."""
+    out = []
+    for i, j in pairs:
+        T = G.relative(truth[i], truth[j]) @ G.xytheta_to_matrix(*rng.normal(0, [0.01, 0.01, np.radians(0.1)]))
+        out.append(_verified(i, j, T if offset is None else T @ offset, None, None, False))
+    return out
+
+
+def test_a_return_to_two_passes_the_graph_misplaced_gives_a_group_against_each():
+    """The return (30–34) meets the corridor's first pass (0–4) and its second (20–24), which the graph holds
+    2.5 m and 8° from the first — farther than the 20 keyframes between them can vouch for. Both sets of closures
+    are right; each agrees within itself and disagrees with the other through the graph's wrong stretch. The
+    larger set does not refute the smaller: both are accepted, once each. Closures against the first pass that
+    put the return 2 m along it (an alias of that same place, which the stretch 0–4 does vouch for) are refused
+    with the group they contradict standing."""
+    W = LoopConfig().group_window_keyframes
+    truth = _two_passes_truth()
+    est = truth.copy()
+    est[20:25] = G.xytheta_to_matrix(2.5, 0.5, np.radians(8)) @ truth[20:25]
+    est[30:35] = G.xytheta_to_matrix(2.0, -0.5, np.radians(12)) @ truth[30:35]
+    rng = np.random.default_rng(8)
+    first = _closures(truth, zip(range(5), range(30, 35)), rng)
+    second = _closures(truth, zip(range(20, 23), range(30, 33)), rng)
+    acc = _acceptance(step_cov=1e-4)
+    assert not C.vouches(*acc.uncertainty.chain_variance(0, 20, est[:, :2, 3]), LoopConfig(), True)
+    assert not acc.consistent(to_closure(first[0], _keyframes(60), True), to_closure(second[0], _keyframes(60), True), est)
+    for v in first + second:
+        acc.consider(v, _keyframes(60), _line(60), lambda v: True)
+    group = acc.decide(30 + W - 1, est)
+    assert sorted((lc.i, lc.j) for lc in group) == sorted([(i, j) for i, j in zip(range(5), range(30, 35))]
+                                                          + [(i, j) for i, j in zip(range(20, 23), range(30, 33))])
+    assert acc.stats.accepted_as_group == 8 and acc.stats.pending_expired == 0
+
+    acc = _acceptance(step_cov=1e-4)
+    alias = _closures(truth, zip(range(1, 4), range(30, 33)), rng, G.xytheta_to_matrix(2.0, 0.0, 0.0))
+    for v in _closures(truth, zip(range(5), range(30, 35)), rng) + alias:
+        acc.consider(v, _keyframes(60), _line(60), lambda v: True)
+    group = acc.decide(30 + W - 1, est)
+    assert sorted(lc.i for lc in group) == [0, 1, 2, 3, 4]
+    assert acc.stats.pending_expired == 3
+
+
 def test_the_maximum_consistent_set_is_the_maximum_clique():
     """On random consistency graphs the exact search finds a clique as large as brute force does."""
     rng = np.random.default_rng(0)

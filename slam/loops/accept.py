@@ -17,7 +17,8 @@
   Dominic, Eustice & Vasudevan, ICRA 2018; the maximum clique is exact here) — and no closure
   accepted on its own between the same stretches disagrees with them. A group is decided once the
   window of ``group_window_keyframes`` after its first member has passed, so the evidence against it
-  that arrives in that window (a closure accepted where the estimate was) is seen.
+  that arrives in that window (a closure accepted where the estimate was) is seen. The window's other
+  old places (old keyframes the graph cannot tie to the group's) get a group of their own, decided alike.
 * A global match beyond its χ² gate of the estimate (``Candidate.max_mahalanobis2``) is rejected unless it is
   *corroborated*: an earlier global match beyond the gate, against a place whose local map shares no
   keyframe with its own, agrees with it (the same pairwise test) while the odometry between the two new
@@ -164,24 +165,44 @@ class Acceptance:
         return self._agreeing([p.closure for p in held], poses)
 
     def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
-        """The largest pairwise-consistent subset of *closures*, accepted as a group when it spans
+        """The groups among *closures*: the largest pairwise-consistent subset, accepted when it spans
         ``group_min_size`` new keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm`
-        (when set) agrees (else empty); the rest expire."""
-        group = self._max_consistent_set(closures, poses)
+        (when set) agrees; then the same again among the closures against *other* old places — those whose
+        old keyframe the graph cannot vouch for relative to any accepted member's (:meth:`_other_places`) —
+        until no group is left (the rest expire). A return seen against two old passes that the graph has
+        misplaced relative to each other gives two groups, each consistent and each inconsistent with the
+        other through the graph's wrong stretch between the passes: both are revisits, and the larger one
+        does not refute the smaller."""
         accepted: list[LoopClosure] = []
-        if len({lc.j for lc in group}) >= self.config.group_min_size:
+        left = closures
+        while left:
+            group = self._max_consistent_set(left, poses)
+            if len({lc.j for lc in group}) < self.config.group_min_size:
+                break
             if self._contradicted(group, poses):
                 self.stats.groups_contradicted += 1
-            elif self.confirm is not None and not self.confirm(group, poses):
+                break
+            if self.confirm is not None and not self.confirm(group, poses):
                 self.stats.groups_out_of_context += 1
-            else:
-                accepted = group
+                break
+            accepted += group
+            left = self._other_places(left, group, poses)
         members = {id(lc) for lc in accepted}
         self.stats.pending_expired += sum(1 for lc in closures if id(lc) not in members)
         for lc in accepted:
             lc.group = True
         self.stats.accepted_as_group += len(accepted)
         return accepted
+
+    def _other_places(self, closures: list[LoopClosure], group: list[LoopClosure], poses: Array) -> list[LoopClosure]:
+        """The *closures* outside the accepted *group* whose old keyframe is at another place than every
+        member's: the chain of keyframes between them is too uncertain to vouch for (those the chain ties to a
+        member and that disagree with the group are its aliases)."""
+        d = 2 if self.planar else 3
+        pos = poses[:, :d, 3]
+        members = {id(lc) for lc in group}
+        return [lc for lc in closures if id(lc) not in members and not any(
+            vouches(*self.uncertainty.chain_variance(lc.i, a.i, pos), self.config, self.planar) for a in group)]
 
     def take_refused(self) -> list[int]:
         """The new keyframes of the unique global matches refused beyond the gate since the last call

@@ -4,15 +4,16 @@
 :mod:`slam.loops.accept` in the order every keyframe goes through:
 
 1. spatial candidates within the estimate's uncertainty, each verified, and accepted when the
-   estimate vouches for it and agrees (else pending);
+   estimate vouches for it and agrees (else pending, when it is unique: its scan, or else the recent path
+   that led there, :func:`~slam.loops.context.path_unique`);
 2. the places of recent pending closures the estimate could not vouch for, followed into with the
    odometry since (so a revisit gathers its group);
 3. when nothing was accepted, descriptor candidates (Scan Context: occupancy bins for a 2D laser,
    heights for a 3D LiDAR); and a global search of one place within reach that no spatial window could
    cover, the one that looks most like the new keyframe first (2D, every ``global_every_keyframes``);
 4. the group decision over the pending closures whose window has passed (at the end of the log, over
-   the windows still open: :meth:`LoopCloser.close_open_window`), a group's last word going to its
-   recent path matched as a whole on the old place (2D, :mod:`slam.loops.context`);
+   the windows still open: :meth:`LoopCloser.close_open_window`), a group per old place, each group's
+   last word going to its recent path matched as a whole on the old place (2D, :mod:`slam.loops.context`);
 5. after a group relocalised the graph, the keyframes around the global matches the estimate had refused
    are sought again under the corrected estimate (:meth:`LoopCloser.reseek`).
 
@@ -29,13 +30,13 @@ from core import geometry as G
 from slam.keyframes import Keyframe
 
 from . import candidates as C
-from .accept import Acceptance, Pending
+from .accept import Acceptance, Pending, to_closure
 from .config import LoopConfig
-from .context import context_agrees
+from .context import context_agrees, path_unique
 from .descriptor import SCAN_CONTEXT_3D, DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 from .local_map import LocalMaps
 from .surroundings import Surroundings
-from .types import Candidate, LoopClosure, LoopStats, Rejection, Source
+from .types import Candidate, LoopClosure, LoopStats, Rejection, Source, Verified
 from .uncertainty import NodeUncertainty, RelativeUncertainty
 from .verify import Reference, Verifier
 
@@ -63,6 +64,7 @@ class LoopCloser:
         self._global_searched: dict[int, float] = {}  # place → path (m) at its last global search
         self.surroundings = Surroundings()  # what places look like: the global search's order
         self.trace: list[tuple[Candidate, object, dict]] | None = None  # set to a list: (candidate, outcome, figures) of every verification
+        self._path_floor: dict[int, float] = {}  # keyframe → the score its recent path must reach (this detect or reseek)
 
     def summary(self) -> dict:
         """The counters of :class:`LoopStats` (``summary.json`` ``loop_stats``)."""
@@ -98,6 +100,7 @@ class LoopCloser:
         c = self.config
         kj = keyframes[j]
         self._keyframes = keyframes
+        self._path_floor.clear()
         step = 0.0 if j == 0 else float(np.linalg.norm(G.relative(keyframes[j - 1].odom_pose, kj.odom_pose)[:3, 3]))
         self._path_m.append((self._path_m[-1] if self._path_m else 0.0) + step)
         if not c.enabled:
@@ -144,6 +147,24 @@ class LoopCloser:
         return context_agrees(group, self._keyframes, poses, np.asarray(self._path_m), self.config,
                               self.config.min_relative_score * own)
 
+    def _unique(self, v: Verified, keyframes: list[Keyframe], poses: Array, half: int) -> bool:
+        """Whether the verified alignment *v* is unique: its scan in its search window
+        (:meth:`Verifier.unique`), or else — a spatial candidate in 2D — the recent path that led there,
+        matched as one cloud on the old place (:func:`~slam.loops.context.path_unique`): a return along a
+        corridor whose doors repeat is ambiguous scan by scan, not with the corner it came round. The path must
+        score ``min_relative_score`` of what the new keyframe's scan scores on its own preceding map."""
+        if self.verifier.unique(v, keyframes, poses, half):
+            return True
+        c = v.candidate
+        if not self.planar or c.source is not Source.SPATIAL:
+            return False
+        if c.j not in self._path_floor:
+            self._path_floor[c.j] = self.config.min_relative_score * self.verifier.own_score(keyframes, poses, c.j)
+        found = path_unique(to_closure(v, keyframes, self.planar), keyframes, poses, np.asarray(self._path_m),
+                            self.config, self._path_floor[c.j])
+        self.stats.unique_by_path += int(found)
+        return found
+
     @property
     def refused(self) -> bool:
         """Whether global matches were refused beyond the gate since the last :meth:`reseek`."""
@@ -159,6 +180,7 @@ class LoopCloser:
         one was there. Returns the closures and whether they relocalise the graph."""
         c = self.config
         self._keyframes = keyframes
+        self._path_floor.clear()
         W = c.group_window_keyframes
         newest = len(keyframes) - 1
         seek = sorted({k for r in self.acceptance.take_refused() for k in range(max(0, r - W), min(newest, r + W + 1))
@@ -200,8 +222,7 @@ class LoopCloser:
             self.stats.rejections[result] += 1
             return
         self.stats.verified += 1
-        lc = self.acceptance.consider(result, keyframes, poses, lambda v: self.verifier.unique(v, keyframes, poses, half),
-                                      held)
+        lc = self.acceptance.consider(result, keyframes, poses, lambda v: self._unique(v, keyframes, poses, half), held)
         if lc is not None:
             out.append(lc)
 

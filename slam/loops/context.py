@@ -1,4 +1,5 @@
-"""A group's last word: the robot's recent path, matched as one cloud on the old place (2D).
+"""The robot's recent path, matched as one cloud on the old place (2D): a group's last word, and a closure's
+uniqueness where its own scan is ambiguous.
 
 A group of closures the estimate cannot vouch for agrees with itself even when it is an alias: along a
 corridor whose doors repeat, each scan of a return fits the old pass a few metres along as well as at the
@@ -16,6 +17,12 @@ context where a single scan is ambiguous is Olson's argument for place recogniti
 "Recognizing places using spectrally clustered local matches", Robotics and Autonomous Systems 57(12),
 2009: a match must be locally unambiguous and globally sufficient); Cartographer matches scans against
 submaps for the same reason (Hess et al., ICRA 2016).
+
+The same evidence works the other way (:func:`path_unique`): a closure whose scan fits the old pass as
+well a few metres along (it fails the verifier's uniqueness test, and was dropped) is unique when the
+recent path, placed as the closure says, is: nothing within the verifier's ±3 floor windows at any heading
+scores ``ambiguity_ratio`` of it. Such a closure may then wait for a group like any unique one, and the
+group still faces every other test, this one's :func:`context_agrees` among them.
 """
 
 from __future__ import annotations
@@ -30,10 +37,10 @@ from slam.keyframes import Keyframe
 
 from .config import LoopConfig
 from .types import LoopClosure
+from .verify import PYRAMID_LEVELS, UNIQUE_RADIUS_CELLS, UNIQUE_RADIUS_RAD, UNIQUE_WINDOW_FLOORS
 
 Array = NDArray[np.float64]
 
-_PYRAMID_LEVELS = 5  # as the verifier's: 2^5 cells per top block
 _MIN_OWN_PATH = 0.25  # a recent path shorter than this fraction of group_context_path_m adds nothing to the group
 
 
@@ -44,6 +51,39 @@ def _cloud(keyframes: list[Keyframe], poses: Array, ref: int, members: list[int]
                       for m in members])
 
 
+def _path_and_surroundings(j: int, lo: int, hi: int, path_m: Array, reach: float
+                           ) -> tuple[list[int], list[int]] | None:
+    """The recent path (keyframes of the last *reach* m of path up to *j*, none older than *hi*) and the old
+    place's surroundings (the keyframes within *reach* m of path either side of *lo* … *hi*, older than the
+    recent path); None when the recent path is too short to add anything or there are no surroundings."""
+    recent = [m for m in range(j, hi, -1) if path_m[j] - path_m[m] <= reach]
+    if len(recent) < 2 or path_m[j] - path_m[recent[-1]] < _MIN_OWN_PATH * reach:
+        return None
+    old = [m for m in range(recent[-1]) if path_m[lo] - reach <= path_m[m] <= path_m[hi] + reach]
+    return None if len(old) < 2 else (recent, old)
+
+
+def _path_match(keyframes: list[Keyframe], poses: Array, j: int, i: int, lo: int, hi: int, path_m: Array,
+                config: LoopConfig) -> tuple[Array, correlative.LikelihoodPyramid] | None:
+    """The recent path up to *j* as one cloud in *j*'s base frame (a point a cell), and the likelihood field of
+    the old place's surroundings (round *lo* … *hi*) in *i*'s base frame; None when there is nothing to match
+    (:func:`_path_and_surroundings`). Raises :class:`DegenerateInputError` for too few points."""
+    if config.group_context_path_m is None:
+        return None
+    found = _path_and_surroundings(j, lo, hi, path_m, config.group_context_path_m)
+    if found is None:
+        return None
+    recent, old = found
+    res = config.correlative_resolution_m
+    query = _cloud(keyframes, poses, j, recent)
+    query = query[np.unique(np.floor(query / res).astype(np.int64), axis=0, return_index=True)[1]]
+    return query, correlative.LikelihoodPyramid(_cloud(keyframes, poses, i, old), res, res, levels=PYRAMID_LEVELS)
+
+
+def _planar(T: Array) -> Array:
+    return G.xytheta_to_matrix(G.matrix_to_xytheta(T))
+
+
 def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
                    config: LoopConfig, min_score: float = 0.0) -> bool:
     """Whether the recent path up to the *group*'s newest keyframe, matched as a whole on the old place, lands
@@ -52,24 +92,16 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
     that scores below *min_score* (a path the estimate blurred, or surroundings that hold little of it: no
     pose explains it, and which explains it least badly says nothing)."""
     c = config
-    if c.group_context_path_m is None or not group:
+    if not group:
         return True
     newest = max(group, key=lambda lc: lc.j)
-    j = newest.j
-    lo, hi = min(lc.i for lc in group), max(lc.i for lc in group)
-    reach = c.group_context_path_m
-    recent = [m for m in range(j, hi, -1) if path_m[j] - path_m[m] <= reach]
-    if len(recent) < 2 or path_m[j] - path_m[recent[-1]] < _MIN_OWN_PATH * reach:
-        return True
-    old = [m for m in range(recent[-1]) if path_m[lo] - reach <= path_m[m] <= path_m[hi] + reach]
-    if len(old) < 2:
-        return True
-    res = c.correlative_resolution_m
-    query = _cloud(keyframes, poses, j, recent)
-    query = query[np.unique(np.floor(query / res).astype(np.int64), axis=0, return_index=True)[1]]  # a point a cell
     try:
-        pyramid = correlative.LikelihoodPyramid(_cloud(keyframes, poses, newest.i, old), res, res, levels=_PYRAMID_LEVELS)
-        guess = G.xytheta_to_matrix(G.matrix_to_xytheta(newest.measurement))
+        clouds = _path_match(keyframes, poses, newest.j, newest.i, min(lc.i for lc in group),
+                             max(lc.i for lc in group), path_m, c)
+        if clouds is None:
+            return True
+        query, pyramid = clouds
+        guess = _planar(newest.measurement)
         found = correlative.match(query, pyramid, guess, c.group_context_window_m, np.radians(c.window_floor_deg))
     except DegenerateInputError:
         return True
@@ -78,3 +110,29 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
     d = G.matrix_to_xytheta(G.relative(guess, found.transform))
     near = bool(np.hypot(d[0], d[1]) <= c.window_floor_m and abs(d[2]) <= np.radians(c.window_floor_deg))
     return near or found.guess_score >= c.ambiguity_ratio * found.score
+
+
+def path_unique(closure: LoopClosure, keyframes: list[Keyframe], poses: Array, path_m: Array, config: LoopConfig,
+                min_score: float) -> bool:
+    """Whether a *closure* whose own scan is ambiguous is unique on the evidence of the path that led there:
+    the recent path up to its new keyframe, placed as the closure says on the old place's surroundings,
+    scores at least *min_score*, and no pose within ``UNIQUE_WINDOW_FLOORS`` floor windows at any heading
+    (beyond a few cells and degrees of it) scores ``ambiguity_ratio`` of that — the uniqueness test of one
+    scan (:meth:`~slam.loops.verify.Verifier.unique`), asked of the whole path. False when there is nothing
+    to match (the scan's ambiguity stands)."""
+    c = config
+    try:
+        clouds = _path_match(keyframes, poses, closure.j, closure.i, closure.i, closure.i, path_m, c)
+        if clouds is None:
+            return False
+        query, pyramid = clouds
+        T = _planar(closure.measurement)
+        own = correlative.score_at(query, pyramid, T)
+        if own <= 0.0 or own < min_score:
+            return False
+        other = correlative.best_elsewhere(query, pyramid, T, UNIQUE_WINDOW_FLOORS * c.window_floor_m, np.pi, T,
+                                           UNIQUE_RADIUS_CELLS * pyramid.resolution, UNIQUE_RADIUS_RAD,
+                                           c.ambiguity_ratio * own)
+    except DegenerateInputError:
+        return False
+    return other is None

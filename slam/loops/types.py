@@ -125,6 +125,7 @@ class LoopStats:
     pending_expired: int = 0  # pending closures whose window passed without a group
     groups_contradicted: int = 0  # groups refused because an accepted closure nearby disagrees
     groups_out_of_context: int = 0  # groups refused because the recent path, matched as a whole, lands elsewhere
+    unique_by_path: int = 0  # closures whose scan was ambiguous held pending because the recent path is unique there
     global_searches: int = 0
     corroborated: int = 0  # global matches beyond the estimate's gate held for a group because another agreed
     reseeks: int = 0  # keyframes sought again after a relocalisation (around refused global matches)
@@ -135,5 +136,6 @@ class LoopStats:
         d |= {f"candidates_{s.value}": self.candidates[s] for s in Source}
         d |= {r.value: self.rejections[r] for r in Rejection}
         d |= {k: getattr(self, k) for k in ("verified", "accepted", "accepted_as_group", "pending_expired",
-                                             "groups_contradicted", "groups_out_of_context", "global_searches", "corroborated", "reseeks")}
+                                             "groups_contradicted", "groups_out_of_context", "unique_by_path", "global_searches",
+                                             "corroborated", "reseeks")}
         return d

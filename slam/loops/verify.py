@@ -51,10 +51,10 @@ from .types import Candidate, Rejection, Source, Verified
 
 Array = NDArray[np.float64]
 
-_PYRAMID_LEVELS = 5  # 2^5 cells per top block: larger windows start from more blocks, not deeper grids
-_UNIQUE_RADIUS_CELLS = 3  # the neighbourhood of a match left out of the uniqueness search
-_UNIQUE_RADIUS_RAD = np.radians(3.0)
-_UNIQUE_WINDOW_FLOORS = 3  # uniqueness is asked around the match, within three floor windows (±3 m by default), at every heading
+PYRAMID_LEVELS = 5  # 2^5 cells per top block: larger windows start from more blocks, not deeper grids
+UNIQUE_RADIUS_CELLS = 3  # the neighbourhood of a match left out of the uniqueness search
+UNIQUE_RADIUS_RAD = np.radians(3.0)
+UNIQUE_WINDOW_FLOORS = 3  # uniqueness is asked around the match, within three floor windows (±3 m by default), at every heading
 
 
 @dataclass
@@ -80,7 +80,7 @@ class Reference:
     def score(self, maps: LocalMaps, points: Array, resolution: float) -> float:
         """Correlative score of the scan *points* on its own map at *resolution* (m)."""
         if resolution not in self._scores:
-            pyr = maps.pyramid(self.local_map, resolution, _PYRAMID_LEVELS)
+            pyr = maps.pyramid(self.local_map, resolution, PYRAMID_LEVELS)
             self._scores[resolution] = correlative.score_at(points, pyr, self.pose)
         return self._scores[resolution]
 
@@ -153,7 +153,7 @@ class Verifier:
         resolution = cfg.global_resolution_m if c.source is Source.GLOBAL else cfg.correlative_resolution_m
         try:
             if self.planar and cfg.correlative:
-                pyr = self.maps.pyramid(lm, resolution, _PYRAMID_LEVELS)
+                pyr = self.maps.pyramid(lm, resolution, PYRAMID_LEVELS)
                 pts = self.search_points(kj)
                 own = ref.score(self.maps, pts, resolution) if ref is not None else 0.0
                 need = cfg.min_relative_score * own
@@ -217,7 +217,7 @@ class Verifier:
             return True
         lm = self.maps.get(keyframes, poses, c.i, half)
         resolution = cfg.global_resolution_m if c.source is Source.GLOBAL else cfg.correlative_resolution_m
-        pyr = self.maps.pyramid(lm, resolution, _PYRAMID_LEVELS)
+        pyr = self.maps.pyramid(lm, resolution, PYRAMID_LEVELS)
         pts = self.search_points(keyframes[c.j])
         try:
             return self._elsewhere_ratio(pts, pyr, c, v.transform, cfg.ambiguity_ratio) < cfg.ambiguity_ratio
@@ -257,10 +257,10 @@ class Verifier:
         if own <= 0:
             return np.inf
         cfg = self.config
-        xy = min(c.window.xy_m, _UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
+        xy = min(c.window.xy_m, UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
         th = np.pi  # every heading: a symmetric corridor matches itself turned round as well as straight
-        radius = _UNIQUE_RADIUS_CELLS * pyr.resolution
-        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, _UNIQUE_RADIUS_RAD, floor * own)
+        radius = UNIQUE_RADIUS_CELLS * pyr.resolution
+        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, UNIQUE_RADIUS_RAD, floor * own)
         near = self._stretch_rival(pts, pyr, c, T, xy, radius, floor * own)
         other = max((s for s in (other, near) if s is not None), default=None)
         return 0.0 if other is None else other / own
@@ -289,7 +289,7 @@ class Verifier:
         mid = G.xytheta_to_matrix(np.array([*(est[:2] + mine[:2]) / 2, mine[2] + d_th / 2]))
         return correlative.best_elsewhere(pts, pyr, mid, float(half.max()) + cfg.window_floor_m,
                                           abs(d_th) / 2 + np.radians(cfg.window_floor_deg),
-                                          T, radius, _UNIQUE_RADIUS_RAD, min_score)
+                                          T, radius, UNIQUE_RADIUS_RAD, min_score)
 
     def _covariance(self, res: IcpResult, kj: Keyframe) -> Array:
         """ICP covariance (sensor frame) at max(a-priori, a-posteriori) residual variance, plus the floor."""
