@@ -562,6 +562,37 @@ def test_a_return_to_two_passes_the_graph_misplaced_gives_a_group_against_each()
     assert acc.stats.pending_expired == 3
 
 
+def test_of_two_rival_groups_at_one_place_the_one_whose_path_fits_better_is_taken():
+    """A return along a corridor whose doors repeat: three closures place it right, five (against more old
+    keyframes) 2 m along, each set consistent, the two at odds through the short, sure stretch 0–4. The larger
+    was taken; now the one whose recent path fits the old place better (the ``fit`` hook, the closer's path
+    score) is, and counted. Without a fit, or when the larger fits better, the larger stands."""
+    W = LoopConfig().group_window_keyframes
+    truth = _corridor_truth()
+    est = truth.copy()
+    est[30:35] = G.xytheta_to_matrix(2.0, -0.5, np.radians(12)) @ truth[30:35]
+
+    def rivals(rng):
+        right = _closures(truth, zip(range(3), range(30, 33)), rng)
+        alias = _closures(truth, zip(range(5), range(30, 35)), rng, G.xytheta_to_matrix(2.0, 0.0, 0.0))
+        return right, alias
+
+    def is_right(group) -> bool:
+        return all(np.linalg.norm(G.relative(G.relative(truth[lc.i], truth[lc.j]), lc.measurement)[:2, 3]) < 0.1
+                   for lc in group)
+
+    for fit, expect_right in ((lambda g, P: 0.6 if is_right(g) else 0.5, True),
+                              (lambda g, P: 0.5 if is_right(g) else 0.6, False), (None, False)):
+        acc = _acceptance(step_cov=1e-5)
+        acc.fit = fit
+        right, alias = rivals(np.random.default_rng(9))
+        for v in right + alias:
+            acc.consider(v, _keyframes(60), _line(60), lambda v: True)
+        group = acc.decide(30 + W - 1, est)
+        assert len(group) == (3 if expect_right else 5) and is_right(group) == expect_right
+        assert acc.stats.groups_by_path == int(expect_right)
+
+
 def test_the_maximum_consistent_set_is_the_maximum_clique():
     """On random consistency graphs the exact search finds a clique as large as brute force does."""
     rng = np.random.default_rng(0)

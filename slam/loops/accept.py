@@ -103,6 +103,9 @@ class Acceptance:
         self.refused: list[int] = []  # new keyframes of unique global matches refused beyond the gate, newest last
         #: a group's last word after its pairwise test (the closer's :func:`~slam.loops.context.context_agrees`)
         self.confirm: Callable[[list[LoopClosure], Array], bool] | None = None
+        #: how well a group's recent path fits where it puts it (the closer's :func:`~slam.loops.context.path_score`;
+        #: None: nothing to tell): decides between rival groups at one place
+        self.fit: Callable[[list[LoopClosure], Array], float | None] | None = None
 
     def consider(self, v: Verified, keyframes: list[Keyframe], poses: Array,
                  unique: Callable[[Verified], bool], hold: list[Pending] | None = None) -> LoopClosure | None:
@@ -165,9 +168,9 @@ class Acceptance:
         return self._agreeing([p.closure for p in held], poses)
 
     def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
-        """The groups among *closures*: the largest pairwise-consistent subset, accepted when it spans
-        ``group_min_size`` new keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm`
-        (when set) agrees; then the same again among the closures against *other* old places — those whose
+        """The groups among *closures*: the largest pairwise-consistent subset (or its rival at the same place
+        whose recent path fits better, :meth:`_fitter`), accepted when it spans ``group_min_size`` new
+        keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm` (when set) agrees; then the same again among the closures against *other* old places — those whose
         old keyframe the graph cannot vouch for relative to any accepted member's (:meth:`_other_places`) —
         until no group is left (the rest expire). A return seen against two old passes that the graph has
         misplaced relative to each other gives two groups, each consistent and each inconsistent with the
@@ -179,6 +182,7 @@ class Acceptance:
             group = self._max_consistent_set(left, poses)
             if len({lc.j for lc in group}) < self.config.group_min_size:
                 break
+            group = self._fitter(group, left, poses)
             if self._contradicted(group, poses):
                 self.stats.groups_contradicted += 1
                 break
@@ -193,6 +197,24 @@ class Acceptance:
             lc.group = True
         self.stats.accepted_as_group += len(accepted)
         return accepted
+
+    def _fitter(self, group: list[LoopClosure], closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
+        """*group*, or its rival — the largest consistent set among the other *closures* at the same place (the
+        aliases :meth:`_other_places` leaves out), when it also spans ``group_min_size`` new keyframes and its
+        recent path fits the old place better (:attr:`fit`). Two such sets are a return and its alias along a
+        corridor whose doors repeat; the larger is the one matched against more old keyframes, which says
+        nothing about which is right, while the path that led there does."""
+        if self.fit is None:
+            return group
+        others = {id(lc) for lc in self._other_places(closures, group, poses)} | {id(lc) for lc in group}
+        rival = self._max_consistent_set([lc for lc in closures if id(lc) not in others], poses)
+        if len({lc.j for lc in rival}) < self.config.group_min_size:
+            return group
+        mine, theirs = self.fit(group, poses), self.fit(rival, poses)
+        if mine is None or theirs is None or theirs <= mine:
+            return group
+        self.stats.groups_by_path += 1
+        return rival
 
     def _other_places(self, closures: list[LoopClosure], group: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The *closures* outside the accepted *group* whose old keyframe is at another place than every

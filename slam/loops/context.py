@@ -112,6 +112,25 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
     return near or found.guess_score >= c.ambiguity_ratio * found.score
 
 
+def path_score(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
+               config: LoopConfig) -> float | None:
+    """The correlative score (0–1) of the recent path up to the *group*'s newest keyframe, placed as that member
+    says, on the old place's surroundings — how well the path that led there fits where the group puts it;
+    None when there is nothing to match (as in :func:`context_agrees`)."""
+    if not group:
+        return None
+    newest = max(group, key=lambda lc: lc.j)
+    try:
+        clouds = _path_match(keyframes, poses, newest.j, newest.i, min(lc.i for lc in group),
+                             max(lc.i for lc in group), path_m, config)
+    except DegenerateInputError:
+        return None
+    if clouds is None:
+        return None
+    query, pyramid = clouds
+    return correlative.score_at(query, pyramid, _planar(newest.measurement))
+
+
 def path_unique(closure: LoopClosure, keyframes: list[Keyframe], poses: Array, path_m: Array, config: LoopConfig,
                 min_score: float) -> bool:
     """Whether a *closure* whose own scan is ambiguous is unique on the evidence of the path that led there:
