@@ -18,7 +18,8 @@
   accepted on its own between the same stretches disagrees with them. A group is decided once the
   window of ``group_window_keyframes`` after its first member has passed, so the evidence against it
   that arrives in that window (a closure accepted where the estimate was) is seen. The window's other
-  old places (old keyframes the graph cannot tie to the group's) get a group of their own, decided alike.
+  old places (old keyframes the graph cannot tie to the group's) get a group of their own, decided alike;
+  of two rival sets at one place, the one whose recent path fits the old place better stands (``fit``).
 * A global match beyond its χ² gate of the estimate (``Candidate.max_mahalanobis2``) is rejected unless it is
   *corroborated*: an earlier global match beyond the gate, against a place whose local map shares no
   keyframe with its own, agrees with it (the same pairwise test) while the odometry between the two new
