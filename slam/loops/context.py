@@ -84,6 +84,19 @@ def _planar(T: Array) -> Array:
     return G.xytheta_to_matrix(G.matrix_to_xytheta(T))
 
 
+def _group_path_match(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
+                      config: LoopConfig) -> tuple[LoopClosure, Array, correlative.LikelihoodPyramid] | None:
+    """The *group*'s newest member with :func:`_path_match`'s clouds for it (its recent path, the surroundings of
+    all the group's old keyframes); None without a group or anything to match. Raises
+    :class:`DegenerateInputError` for too few points."""
+    if not group:
+        return None
+    newest = max(group, key=lambda lc: lc.j)
+    clouds = _path_match(keyframes, poses, newest.j, newest.i, min(lc.i for lc in group), max(lc.i for lc in group),
+                         path_m, config)
+    return None if clouds is None else (newest, *clouds)
+
+
 def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
                    config: LoopConfig, min_score: float = 0.0) -> bool:
     """Whether the recent path up to the *group*'s newest keyframe, matched as a whole on the old place, lands
@@ -92,15 +105,11 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
     that scores below *min_score* (a path the estimate blurred, or surroundings that hold little of it: no
     pose explains it, and which explains it least badly says nothing)."""
     c = config
-    if not group:
-        return True
-    newest = max(group, key=lambda lc: lc.j)
     try:
-        clouds = _path_match(keyframes, poses, newest.j, newest.i, min(lc.i for lc in group),
-                             max(lc.i for lc in group), path_m, c)
-        if clouds is None:
+        matched = _group_path_match(group, keyframes, poses, path_m, c)
+        if matched is None:
             return True
-        query, pyramid = clouds
+        newest, query, pyramid = matched
         guess = _planar(newest.measurement)
         found = correlative.match(query, pyramid, guess, c.group_context_window_m, np.radians(c.window_floor_deg))
     except DegenerateInputError:
@@ -117,17 +126,13 @@ def path_score(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array
     """The correlative score (0–1) of the recent path up to the *group*'s newest keyframe, placed as that member
     says, on the old place's surroundings — how well the path that led there fits where the group puts it;
     None when there is nothing to match (as in :func:`context_agrees`)."""
-    if not group:
-        return None
-    newest = max(group, key=lambda lc: lc.j)
     try:
-        clouds = _path_match(keyframes, poses, newest.j, newest.i, min(lc.i for lc in group),
-                             max(lc.i for lc in group), path_m, config)
+        matched = _group_path_match(group, keyframes, poses, path_m, config)
     except DegenerateInputError:
         return None
-    if clouds is None:
+    if matched is None:
         return None
-    query, pyramid = clouds
+    newest, query, pyramid = matched
     return correlative.score_at(query, pyramid, _planar(newest.measurement))
 
 
