@@ -64,17 +64,18 @@ def _path_and_surroundings(j: int, lo: int, hi: int, path_m: Array, reach: float
 
 
 def _path_match(keyframes: list[Keyframe], poses: Array, j: int, i: int, lo: int, hi: int, path_m: Array,
-                config: LoopConfig) -> tuple[Array, correlative.LikelihoodPyramid] | None:
+                config: LoopConfig, resolution_m: float | None = None) -> tuple[Array, correlative.LikelihoodPyramid] | None:
     """The recent path up to *j* as one cloud in *j*'s base frame (a point a cell), and the likelihood field of
-    the old place's surroundings (round *lo* … *hi*) in *i*'s base frame; None when there is nothing to match
-    (:func:`_path_and_surroundings`). Raises :class:`DegenerateInputError` for too few points."""
+    the old place's surroundings (round *lo* … *hi*) in *i*'s base frame, at *resolution_m* (cell and σ; None:
+    ``correlative_resolution_m``); None when there is nothing to match (:func:`_path_and_surroundings`). Raises
+    :class:`DegenerateInputError` for too few points."""
     if config.group_context_path_m is None:
         return None
     found = _path_and_surroundings(j, lo, hi, path_m, config.group_context_path_m)
     if found is None:
         return None
     recent, old = found
-    res = config.correlative_resolution_m
+    res = config.correlative_resolution_m if resolution_m is None else resolution_m
     query = _cloud(keyframes, poses, j, recent)
     query = query[np.unique(np.floor(query / res).astype(np.int64), axis=0, return_index=True)[1]]
     return query, correlative.LikelihoodPyramid(_cloud(keyframes, poses, i, old), res, res, levels=PYRAMID_LEVELS)
@@ -143,10 +144,12 @@ def path_unique(closure: LoopClosure, keyframes: list[Keyframe], poses: Array, p
     scores at least *min_score*, and no pose within ``UNIQUE_WINDOW_FLOORS`` floor windows at any heading
     (beyond a few cells and degrees of it) scores ``ambiguity_ratio`` of that — the uniqueness test of one
     scan (:meth:`~slam.loops.verify.Verifier.unique`), asked of the whole path. False when there is nothing
-    to match (the scan's ambiguity stands)."""
+    to match (the scan's ambiguity stands). The search runs at ``global_resolution_m`` (the coarser cell of the
+    searches over wide windows): ±3 m at every heading of a 20 m path is one, and at the spatial cell it cost
+    Intel 10 s of its minute."""
     c = config
     try:
-        clouds = _path_match(keyframes, poses, closure.j, closure.i, closure.i, closure.i, path_m, c)
+        clouds = _path_match(keyframes, poses, closure.j, closure.i, closure.i, closure.i, path_m, c, c.global_resolution_m)
         if clouds is None:
             return False
         query, pyramid = clouds
