@@ -171,9 +171,10 @@ class Acceptance:
     def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The groups among *closures*: the largest pairwise-consistent subset (or its rival at the same place
         whose recent path fits better, :meth:`_fitter`), accepted when it spans ``group_min_size`` new
-        keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm` (when set) agrees; then the same again among the closures against *other* old places — those whose
-        old keyframe the graph cannot vouch for relative to any accepted member's (:meth:`_other_places`) —
-        until no group is left (the rest expire). A return seen against two old passes that the graph has
+        keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm` (when set) agrees; then
+        the same again among the closures against *other* old places — those whose old keyframe the graph
+        cannot vouch for relative to any accepted member's (:meth:`_other_places`) — until no group is left
+        (the rest expire). A return seen against two old passes that the graph has
         misplaced relative to each other gives two groups, each consistent and each inconsistent with the
         other through the graph's wrong stretch between the passes: both are revisits, and the larger one
         does not refute the smaller."""
@@ -183,7 +184,10 @@ class Acceptance:
             group = self._max_consistent_set(left, poses)
             if len({lc.j for lc in group}) < self.config.group_min_size:
                 break
-            group = self._fitter(group, left, poses)
+            others = self._other_places(left, group, poses)
+            chosen = self._fitter(group, left, others, poses)
+            if chosen is not group:
+                group, others = chosen, self._other_places(left, chosen, poses)
             if self._contradicted(group, poses):
                 self.stats.groups_contradicted += 1
                 break
@@ -191,7 +195,7 @@ class Acceptance:
                 self.stats.groups_out_of_context += 1
                 break
             accepted += group
-            left = self._other_places(left, group, poses)
+            left = others
         members = {id(lc) for lc in accepted}
         self.stats.pending_expired += sum(1 for lc in closures if id(lc) not in members)
         for lc in accepted:
@@ -199,16 +203,17 @@ class Acceptance:
         self.stats.accepted_as_group += len(accepted)
         return accepted
 
-    def _fitter(self, group: list[LoopClosure], closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
-        """*group*, or its rival — the largest consistent set among the other *closures* at the same place (the
-        aliases :meth:`_other_places` leaves out), when it also spans ``group_min_size`` new keyframes and its
-        recent path fits the old place better (:attr:`fit`). Two such sets are a return and its alias along a
-        corridor whose doors repeat; the larger is the one matched against more old keyframes, which says
-        nothing about which is right, while the path that led there does."""
+    def _fitter(self, group: list[LoopClosure], closures: list[LoopClosure], others: list[LoopClosure],
+                poses: Array) -> list[LoopClosure]:
+        """*group*, or its rival — the largest consistent set among the *closures* at the same place, neither in
+        the group nor among the *others* (:meth:`_other_places`: those at other places), when it also spans
+        ``group_min_size`` new keyframes and its recent path fits the old place better (:attr:`fit`). Two such
+        sets are a return and its alias along a corridor whose doors repeat; the larger is the one matched
+        against more old keyframes, which says nothing about which is right, while the path that led there does."""
         if self.fit is None:
             return group
-        others = {id(lc) for lc in self._other_places(closures, group, poses)} | {id(lc) for lc in group}
-        rival = self._max_consistent_set([lc for lc in closures if id(lc) not in others], poses)
+        out = {id(lc) for lc in others} | {id(lc) for lc in group}
+        rival = self._max_consistent_set([lc for lc in closures if id(lc) not in out], poses)
         if len({lc.j for lc in rival}) < self.config.group_min_size:
             return group
         mine, theirs = self.fit(group, poses), self.fit(rival, poses)
