@@ -13,7 +13,10 @@ conservative.
 
 The chain model may add the loop closer's random-constant heading rate (:mod:`slam.loops.uncertainty`): a
 rate b ~ N(0, σ_b²) per metre turns step k by b·ℓ_k (ℓ_k its length), common to all steps, so it adds the
-rank-one ``σ_b² u uᵀ`` with ``u = Σ_k Ad(C_b⁻¹ C_k) (0, 0, ℓ_k)`` to the chain's covariance.
+rank-one ``σ_b² u uᵀ`` with ``u = Σ_k Ad(C_b⁻¹ C_k) (0, 0, ℓ_k)`` to the chain's covariance; a scale error of
+the rotation k ~ N(0, σ_k²) (every turn Δθ_k off by k·Δθ_k; Borenstein & Feng 1996, type-B odometry error)
+adds ``σ_k² w wᵀ`` the same way, with Δθ_k for ℓ_k. :func:`heading_fit` measures both on the relations: the
+heading error of long chains regressed on their path length and their summed signed turn.
 
 Relations between scans that are not keyframes are carried to the keyframes before them with the
 front end's own per-scan odometry (its error over those few scans is not in the chain's covariance).
@@ -94,20 +97,25 @@ class Chain:
     """Prefix products and compounded covariances of a keyframe chain, for any pair in O(1).
 
     With right perturbations, ``T_ab = Π_{k=a+1..b} μ_k Exp(ξ_k)`` gives ``Σ_ab = Ad(C_b)⁻¹ (S_b − S_a) Ad(C_b)⁻ᵀ``
-    where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``."""
+    where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``. The loop closer's two random constants
+    (:mod:`slam.loops.uncertainty`) add ``σ_b² u uᵀ`` and ``σ_k² w wᵀ``: a heading error ``b ℓ_m`` (``k Δθ_m``) at step
+    *m* enters as ``Ad(C_m) (0, 0, ℓ_m)`` (``(0, 0, Δθ_m)``), so u and w are prefix sums, exact to first order."""
 
-    def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0) -> None:
+    def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0) -> None:
         K = len(mu)
         self.drift = float(drift_rad_per_m)
+        self.drift_turn = float(drift_per_turn)
         self.C = np.zeros((K, 4, 4))
         self.C[0] = np.eye(4)
         self.S = np.zeros((K, 3, 3))
         self.J = np.zeros((K, 3))  # J_k = Σ_{m ≤ k} Ad(C_m) (0, 0, ℓ_m): the heading rate's prefix
+        self.W = np.zeros((K, 3))  # W_k = Σ_{m ≤ k} Ad(C_m) (0, 0, Δθ_m): the rotation scale error's prefix
         for k in range(1, K):
             self.C[k] = self.C[k - 1] @ mu[k]
             A = G.adjoint(self.C[k], planar=True)
             self.S[k] = self.S[k - 1] + A @ cov[k] @ A.T
             self.J[k] = self.J[k - 1] + A[:, 2] * float(np.linalg.norm(mu[k][:2, 3]))
+            self.W[k] = self.W[k - 1] + A[:, 2] * float(np.arctan2(mu[k][1, 0], mu[k][0, 0]))
 
     def relative(self, a: int, b: int) -> tuple[Array, Array]:
         """``a_T_b`` along the chain and its covariance (a ≤ b)."""
@@ -116,24 +124,30 @@ class Chain:
         if self.drift > 0.0:
             u = Ainv @ (self.J[b] - self.J[a])
             S = S + self.drift**2 * np.outer(u, u)
+        if self.drift_turn > 0.0:
+            w = Ainv @ (self.W[b] - self.W[a])
+            S = S + self.drift_turn**2 * np.outer(w, w)
         return G.relative(self.C[a], self.C[b]), S
 
 
 def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
                keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0,
-               reference_cov: Array | None = None) -> Array:
+               reference_cov: Array | None = None, drift_per_turn: float = 0.0) -> Array:
     """Per relation ``(scan a, scan b)`` with true ``a_T_b`` *truth*: rows (chain length in keyframes, NEES/dof,
     translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad, odometry
-    path length between the keyframes m).
+    path length between the keyframes m, signed heading error rad (estimate minus truth), summed signed odometry
+    turn between the keyframes rad).
 
     *mu*, *cov*: :func:`fuse_steps`; *keyframe_of_scan*: the last keyframe at or before each scan;
     *scan_odometry* ``(N, 4, 4)`` and *keyframe_odometry* ``(K, 4, 4)``: the front end's odometry poses,
-    which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate (0: none);
+    which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate, *drift_per_turn*: σ_k of the
+    rotation's scale error (rad per rad; 0: none);
     *reference_cov* ``(3, 3)``: the relations' own error (:func:`evaluation.relations.reference_noise`), added to
     the chain's (the test is then of ``e ~ N(0, Σ_chain + Σ_ref)``). Relations within one keyframe interval
     are left out."""
-    chain = Chain(mu, cov, drift_rad_per_m)
+    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]  # odometry path length at each keyframe
+    turn = np.r_[0.0, np.cumsum(np.arctan2(mu[1:, 1, 0], mu[1:, 0, 0]))]  # summed signed turn at each keyframe
     rows = []
     for (sa, sb), delta in zip(pairs, truth):
         if sa > sb:
@@ -151,8 +165,43 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
             S = S + reference_cov
         e = G.se2_log(G.relative(delta, est))
         rows.append((kb - ka, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
-                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[kb] - path[ka])))
-    return np.array(rows, dtype=float).reshape(-1, 7)
+                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[kb] - path[ka]),
+                     float(e[2]), float(turn[kb] - turn[ka])))
+    return np.array(rows, dtype=float).reshape(-1, 9)
+
+
+@dataclass(frozen=True)
+class HeadingFit:
+    """Least squares of the signed heading error of chains over at least ``min_path_m`` of odometry on a rate
+    per metre of path and a scale of the summed signed turn (``error ≈ rate·path + scale·turn``): the two
+    systematic odometry errors, measured. ``rms_deg`` is the residual of that fit, ``rms_rate_only_deg`` of the
+    rate alone; ``turn_median_deg`` the chains' median |summed turn| (a robot circling one way gathers it)."""
+
+    n: int
+    min_path_m: float
+    rate_deg_per_m: float
+    scale_rad_per_rad: float
+    rms_deg: float
+    rms_rate_only_deg: float
+    turn_median_deg: float
+
+    def as_dict(self) -> dict:
+        return dict(vars(self))
+
+
+def heading_fit(rows: Array, min_path_m: float = 50.0) -> HeadingFit | None:
+    """:class:`HeadingFit` of :func:`chain_nees` rows (None with fewer than 10 chains that long). The chains share
+    steps, so the fit is a measurement of the log's systematic errors, not a test with independent samples."""
+    r = rows[rows[:, 6] >= min_path_m]
+    if len(r) < 10:
+        return None
+    err, path, turn = r[:, 7], r[:, 6], r[:, 8]
+    (rate, scale), *_ = np.linalg.lstsq(np.column_stack([path, turn]), err, rcond=None)
+    rate_only = float(path @ err / (path @ path))
+    return HeadingFit(len(r), float(min_path_m), float(np.degrees(rate)), float(scale),
+                      float(np.degrees(np.sqrt(np.mean((err - rate * path - scale * turn) ** 2)))),
+                      float(np.degrees(np.sqrt(np.mean((err - rate_only * path) ** 2)))),
+                      float(np.degrees(np.median(np.abs(turn)))))
 
 
 #: Path-length bins (m) of :func:`heading_by_path`.

@@ -106,3 +106,33 @@ def test_g2o_estimate_with_stamp_file_equals_tum(tmp_path, rng):
     pb = dict(line.split(": ", 1) for line in b.stdout.splitlines())
     assert float(pa["rmse"]) == pytest.approx(0.1) and float(pb["rmse"]) == pytest.approx(float(pa["rmse"]), rel=1e-12)
     assert pb["pairs"] == str(n)
+
+
+def test_nees_with_a_rotation_scale_term_is_never_larger_and_the_heading_fit_does_not_depend_on_it(tmp_path):
+    """`slam eval nees` on a real run (the bundled Intel log's first 5000 scans): adding the rotation's scale
+    term (`--turn-drift`) adds a positive semi-definite matrix to every chain's covariance, so no bin's mean
+    NEES may grow and no predicted σ may shrink; the fit of the heading error on path and turn reads the
+    errors alone, so both runs report the same one."""
+    from tests.conftest import DATA
+
+    run = tmp_path / "run"
+    r = subprocess.run([SLAM, "run", str(DATA / "intel.clf.bz2"), "--out", str(run), "--max-scans", "5000",
+                        "--map", "none", "--quiet"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    out = {}
+    for sigma in (0.0, 0.01):
+        r = _run("nees", run, DATA / "intel.relations", "--turn-drift", sigma, "--json", tmp_path / f"{sigma}.json")
+        assert r.returncode == 0, r.stderr
+        out[sigma] = json.loads((tmp_path / f"{sigma}.json").read_text())
+    plain, term = out[0.0], out[0.01]
+    assert plain["relations"] == term["relations"] > 0 and term["turn_drift_rad_per_rad"] == 0.01
+    for a, b in zip(plain["bins"], term["bins"], strict=True):
+        assert b["nees_mean"] <= a["nees_mean"] + 1e-12 and b["sigma_rotation_deg"] >= a["sigma_rotation_deg"] - 1e-12
+    assert any(b["nees_mean"] < a["nees_mean"] for a, b in zip(plain["bins"], term["bins"]))
+    assert plain["heading_fit"] is not None and plain["heading_fit"] == term["heading_fit"]
+
+
+def test_nees_of_a_folder_that_is_no_run_is_one_error_line(tmp_path):
+    r = _run("nees", tmp_path, tmp_path / "none.relations")
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from core import geometry as G
-from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps, heading_by_path
+from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps, heading_by_path, heading_fit
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, _pair_violation, misplaced, self_check
 
@@ -197,6 +197,58 @@ def test_a_heading_rate_in_the_odometry_is_consistent_only_with_the_drift_term()
         # 60 independent rates: the bins of long chains average 60 χ²(3)/3 at most (pairs share their rate).
         assert b.nees_mean == pytest.approx(1.0, rel=0.45), b
     assert plain[301].nees_mean > 2.0 and plain[31].nees_mean > 1.3 and plain[1].nees_mean == pytest.approx(binned[0].nees_mean, rel=0.05)
+
+
+def test_a_scale_error_of_the_rotation_is_consistent_only_with_its_term():
+    """A robot circling one way (0.03 rad per 0.25 m step on average) whose every turn is scaled by (1 + k),
+    k ~ N(0, σ_k²) per chain, besides independent noise: without the term the long chains are overconfident
+    (the error grows with the summed turn); with it every bin averages 1 within its sampling error."""
+    rng = np.random.default_rng(4)
+    K, sigma_k = 400, 0.01
+    cov = np.diag([0.01**2, 0.005**2, np.radians(0.1) ** 2])
+    with_term, without = [], []
+    for _chain in range(60):
+        turns = rng.normal(0.03, 0.05, K)
+        truth = np.array([np.eye(4)] + [np.eye(4)] * (K - 1))
+        for k in range(1, K):
+            truth[k] = truth[k - 1] @ G.xytheta_to_matrix(0.25, 0.0, turns[k])
+        scale = rng.normal(0.0, sigma_k)
+        edges = [(k - 1, k, G.xytheta_to_matrix(0.25, 0.0, turns[k] * (1 + scale)) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), cov)), cov)
+                 for k in range(1, K)]
+        mu, C = fuse_steps(K, edges)
+        pairs = np.array([(a, a + L) for L in (1, 4, 20, 100, 350) for a in range(0, K - L, max(1, L))])
+        args = (mu, C, np.arange(K), truth, truth, pairs, G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]]))
+        with_term.append(chain_nees(*args, drift_per_turn=sigma_k))
+        without.append(chain_nees(*args))
+    plain = {b.lo: b for b in bin_by_length(np.concatenate(without))}
+    for b in bin_by_length(np.concatenate(with_term)):
+        assert b.nees_mean == pytest.approx(1.0, rel=0.45), b
+    assert plain[301].nees_mean > 2.0 and plain[31].nees_mean > 1.3
+
+
+def test_a_heading_rate_and_a_rotation_scale_error_read_back_from_the_fit_together():
+    """One chain whose every step is turned by b·ℓ and every turn scaled by (1 + k), with little noise: the fit
+    of the long chains' signed heading error on path and signed turn returns b and k, and its residual is far
+    below the rate-only fit's (the scale error is what the rate alone cannot explain)."""
+    rng = np.random.default_rng(9)
+    K, rate, scale = 2000, np.radians(0.03), 0.012
+    turns = rng.normal(0.02, 0.08, K)  # circling one way on average, weaving: path and turn not collinear
+    truth = np.array([np.eye(4)] * K)
+    for k in range(1, K):
+        truth[k] = truth[k - 1] @ G.xytheta_to_matrix(0.25, 0.0, turns[k])
+    cov = np.diag([1e-8, 1e-8, 1e-10])
+    edges = [(k - 1, k, G.xytheta_to_matrix(0.25, 0.0, turns[k] * (1 + scale) + rate * 0.25) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), cov)), cov)
+             for k in range(1, K)]
+    mu, C = fuse_steps(K, edges)
+    pairs = np.array([(a, a + L) for L in (250, 500, 900) for a in range(0, K - L, 37)])
+    rows = chain_nees(mu, C, np.arange(K), truth, truth, pairs, G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]]))
+    np.testing.assert_allclose(rows[:, 3], np.abs(rows[:, 7]))
+    fit = heading_fit(rows)
+    assert fit is not None and fit.n == len(pairs)
+    assert fit.rate_deg_per_m == pytest.approx(0.03, rel=0.05)
+    assert fit.scale_rad_per_rad == pytest.approx(scale, rel=0.05)
+    assert fit.rms_deg < 0.1 * fit.rms_rate_only_deg
+    assert heading_fit(rows[:5]) is None
 
 
 def test_a_constant_heading_rate_reads_back_from_the_heading_table_at_every_path_length():

@@ -17,6 +17,7 @@ def nees_cmd(
     relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
     heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
+    turn_drift: float = typer.Option(0.0, "--turn-drift", parser=real(0.0), help="σ of a scale error of the odometry's rotation (rad per rad of signed turn) added to the chain's covariance (the loop closer models none; docs/LOOP_CLOSURE.md); 0: none."),
     reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
     json_out: Path | None = JSON_OPTION,
 ) -> None:
@@ -27,7 +28,7 @@ def nees_cmd(
 
     from core.errors import InputFileError
     from core.trajectory import read_node_stamps
-    from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path
+    from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path, heading_fit
     from evaluation.relations import read_relations, reference_noise
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
@@ -64,10 +65,10 @@ def nees_cmd(
         heading_drift = _run_heading_drift(run)
     noise = reference_noise(rel) if reference else None
     rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)),
-                      None if noise is None else noise.covariance())
+                      None if noise is None else noise.covariance(), turn_drift)
     bins = bin_by_length(rows)
     typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
-               f"heading rate σ {heading_drift:g} °/m")
+               f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
     if noise is not None:
         typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
                    f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
@@ -89,8 +90,15 @@ def nees_cmd(
             span = f"{h.lo_m:.0f}+" if not np.isfinite(h.hi_m) else f"{h.lo_m:.0f}-{h.hi_m:.0f}"
             typer.echo(f"{span:>12} {h.n:>6} {h.error_median_deg:>8.2f} {h.error_p95_deg:>8.2f} {h.rate_median_deg_per_m:>8.4f} "
                        f"{h.rate_p95_deg_per_m:>8.4f} {h.sigma_median_deg:>8.2f}")
-    save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "bins": [b.as_dict() for b in bins],
+    fit = heading_fit(rows)
+    if fit is not None:
+        typer.echo(f"heading error of the {fit.n} chains over {fit.min_path_m:g} m, fitted: {fit.rate_deg_per_m:+.4f} °/m of path "
+                   f"{fit.scale_rad_per_rad:+.4f} rad/rad of signed turn (median |turn| {fit.turn_median_deg:.0f}°); residual "
+                   f"{fit.rms_deg:.2f}° rms ({fit.rms_rate_only_deg:.2f}° with the rate alone)")
+    save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "turn_drift_rad_per_rad": turn_drift,
+                          "bins": [b.as_dict() for b in bins],
                           "heading_by_path": [h.as_dict() for h in by_path],
+                          "heading_fit": None if fit is None else fit.as_dict(),
                           "reference_noise": None if noise is None else {
                               "sigma_translation_m": noise.sigma_translation_m,
                               "sigma_rotation_deg": float(np.degrees(noise.sigma_rotation_rad)), "triangles": noise.triangles}})
