@@ -77,8 +77,8 @@ def test_a_wheel_edge_that_fails_the_gate_is_dropped_only_where_the_wheels_were_
     prev, kf = _keyframe_pair(0.2)
     edge = OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-6]))
     fe._lumpy_since_kf = lumpy
-    wheel = fe._wheel_edge(prev, kf, edge, edge.covariance)
-    assert (wheel is None) is lumpy
+    wheel, agree = fe._wheel_edge(prev, kf, edge, edge.covariance)
+    assert (wheel is None) is lumpy and not agree
     assert fe.wheel_edges_dropped == int(lumpy)
     if not lumpy:
         assert fe.wheel_calibration is not None and fe.wheel_calibration.samples == 0
@@ -96,7 +96,8 @@ def test_the_wheel_edge_carries_the_calibrated_model_once_enough_edges_agree():
         noise = rng.normal(0.0, [0.002, 0.002, 0.0005])
         prev, kf = _keyframe_pair(0.4)
         kf.frame.odom = G.xytheta_to_matrix(0.4 + noise[0], noise[1], noise[2])
-        wheel = fe._wheel_edge(prev, kf, OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), Ce), Ce)
+        wheel, agree = fe._wheel_edge(prev, kf, OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), Ce), Ce)
+        assert agree
         covs.append((wheel.covariance, fe._wheel_covariance(wheel.measurement)))
     assert np.allclose(*covs[0])  # before min_edges: the model as configured
     cal = fe.wheel_calibration
@@ -196,14 +197,16 @@ class _Scripted:
 
 
 @pytest.mark.parametrize("mount_deg", [0.0, 90.0, 30.0])
-@pytest.mark.parametrize("wheels", ["none", "smooth", "lumpy"])
-def test_an_edge_in_a_corridor_without_a_wheel_edge_is_uncertain_along_it(mount_deg, wheels):
+@pytest.mark.parametrize("wheels", ["none", "smooth", "lumpy", "held"])
+def test_an_edge_in_a_corridor_without_agreeing_wheels_is_uncertain_along_it(mount_deg, wheels):
     """Two keyframes 0.5 m apart in a 2 m wide corridor: the registration pins the step across the corridor, the
     score surface lets it slide ±1 m along it. Without a wheel edge beside it (no wheel odometry, or wheels that
     said 0.2 m while lumpy, whose edge the gate leaves out) the edge covariance (base frame) is then largest
     along the corridor, at about the uniform spread's (1 m)²/3 (the mounting turns the sensor's corridor axis
-    into the base's), and stays the registration's across it. With smooth wheels the wheel edge stays, bounds
-    the slide, and the registration edge keeps its own covariance."""
+    into the base's), and stays the registration's across it. So it is beside smooth wheels that fail the gate's
+    test ("held": the registration held at 0.3 m where the robot and its wheels moved 1.5 m): their edge stays
+    and, against a registration edge that now admits the slide, holds the step. With smooth wheels that agree the
+    registration edge keeps its own covariance."""
     from core.frame import Frame
     rng = np.random.default_rng(5)
 
@@ -213,23 +216,27 @@ def test_an_edge_in_a_corridor_without_a_wheel_edge_is_uncertain_along_it(mount_
         return np.vstack([np.c_[x, np.where(rng.random(n) < 0.5, -1.0, 1.0)], jamb]) + 0.0137
 
     mount = G.xytheta_to_matrix(0.3, 0.1, np.radians(mount_deg))
-    step = G.xytheta_to_matrix(0.5, 0.0, 0.0)  # sensor frame, along the corridor
+    step = G.xytheta_to_matrix(1.5 if wheels == "held" else 0.5, 0.0, 0.0)  # sensor frame, along the corridor
     in_view = lambda p: p[np.abs(p[:, 0]) < 8]  # noqa: E731  (each scan sees 16 m of the corridor)
     scans = [in_view(walls()), in_view(G.transform_points(G.inverse(step), walls()))]
     base_poses = [np.eye(4), mount @ step @ G.inverse(mount)]
-    odom = {"none": [None, None], "smooth": base_poses,
+    odom = {"none": [None, None], "smooth": base_poses, "held": base_poses,
             "lumpy": [np.eye(4), mount @ G.xytheta_to_matrix(0.2, 0.0, 0.0) @ G.inverse(mount)]}[wheels]
     frames = [Frame(stamp=float(k), points=scans[k], index=k, base_T_sensor=mount, odom=odom[k]) for k in range(2)]
-    fe = FrontEnd(SlamConfig(), _Scripted([b @ mount for b in base_poses], lumpy=wheels == "lumpy"))  # type: ignore[arg-type]
+    registered = base_poses if wheels != "held" else [np.eye(4), mount @ G.xytheta_to_matrix(0.3, 0.0, 0.0) @ G.inverse(mount)]
+    fe = FrontEnd(SlamConfig(), _Scripted([b @ mount for b in registered], lumpy=wheels == "lumpy"))  # type: ignore[arg-type]
     edges = [fe.process(f)[1] for f in frames]
     cov = edges[1].covariance
     axis = mount[:2, 0]  # the corridor (sensor x) in the base frame
     normal = np.array([-axis[1], axis[0]])
     along, across = float(axis @ cov[:2, :2] @ axis), float(normal @ cov[:2, :2] @ normal)
     assert across < 0.02**2
-    assert len(fe.wheel_edges) == (wheels == "smooth")
+    assert len(fe.wheel_edges) == (wheels in ("smooth", "held"))
     if wheels == "smooth":
         assert along < 0.05**2 and fe.slid_edges == 0
+    elif wheels == "held":  # the surface round 0.3 m is less flat (the jamb is 1.2 m nearer): a wide slide, not the exact spread
+        wheel_along = float(axis @ fe.wheel_edges[0].covariance[:2, :2] @ axis)
+        assert fe.slid_edges == 1 and along > 0.2 and wheel_along < along / 10  # the wheel edge holds the step
     else:
         assert along == pytest.approx(1.0 / 3.0, rel=0.2)
         assert fe.slid_edges == 1 and fe.max_slide_m == pytest.approx(np.sqrt(1.0 / 3.0), rel=0.1)

@@ -9,10 +9,14 @@ scan fits worse than σ (config ``odometry.edge_sigma_from_residuals``), plus a 
 with the motion (config ``odometry.floor_*``) because that covariance treats the previous scan as
 exact. When the edge cannot be evaluated (too few overlapping points) the per-scan covariances
 compounded along the way (:func:`core.geometry.compound_covariance`) are used instead.
-A step no wheel edge backs also carries how far it may have slid: the second moment of the
-poses that score as well on the keyframe-to-keyframe correlative surface (config
-``odometry.edge_ambiguity_*``; Olson 2009; docs/LOOP_CLOSURE.md, "How far a step without wheels may
-have slid").
+A registration edge (2D) that no wheel edge backs, or whose smooth wheels disagree with it, also carries
+how far it may have slid: the second moment of the poses that score as well on the keyframe-to-keyframe
+correlative surface (config ``odometry.edge_ambiguity_*``; Olson 2009; docs/LOOP_CLOSURE.md, "How far a
+step without wheels may have slid"). Its Fisher information does not say so: along a corridor whose far
+end lies beyond the laser's range a few points at a door jamb pin it to centimetres, while scan-to-map
+odometry there can hold still for dozens of scans beside wheels that report steady motion; the wheel
+edge beside it holds the step only once the registration edge admits the slide (docs/LOOP_CLOSURE.md,
+"A registration that holds still in a corridor").
 
 Wheel odometry, when the log has it, gives a second edge per keyframe interval, its noise model
 calibrated online against the registration (:mod:`slam.noise_scale`).
@@ -195,15 +199,18 @@ class FrontEnd:
         m2 = float(innovation @ np.linalg.solve(registration_cov + wheel_cov, innovation))
         return m2 <= float(chi2.ppf(p, self._dof))
 
-    def _wheel_edge(self, prev: Keyframe, kf: Keyframe, edge: OdometryEdge, prior_cov: Array) -> WheelEdge | None:
-        """The wheel edge over keyframes *prev* → *kf*, or None when the gate leaves it out; *prior_cov* is
-        the registration edge's covariance at the a-priori σ, floor included (the gate's).
+    def _wheel_edge(self, prev: Keyframe, kf: Keyframe, edge: OdometryEdge,
+                    prior_cov: Array) -> tuple[WheelEdge | None, bool]:
+        """The wheel edge over keyframes *prev* → *kf* (None when the gate leaves it out) and whether it passed
+        the gate's test; *prior_cov* is the registration edge's covariance at the a-priori σ, floor included
+        (the gate's).
 
         Left out when it fails the χ² test against the registration edge and the wheels were lumpy
         in the interval (``wheel_gate_lumpy_only``; the odometry took its constant-velocity start at
         some scan): over smooth wheels the disagreement is the registration's, a slide along a
         corridor (±0.25 m on 0.2 m steps in the measured case, docs/ODOMETRY.md), and the wheel edge is
-        what holds the chain. Edges that pass the test are the calibration's samples."""
+        what holds the chain (once the registration edge carries its slide). Edges that pass the test are the
+        calibration's samples."""
         c = self.config.odometry
         wrel = G.relative(prev.frame.odom, kf.frame.odom)
         model = self._wheel_covariance(wrel)
@@ -211,14 +218,14 @@ class FrontEnd:
         consistent = self._consistent(d, prior_cov, model)
         if not consistent and (self._lumpy_since_kf or not c.wheel_gate_lumpy_only):
             self.wheel_edges_dropped += 1
-            return None
+            return None, False
         if c.wheel_calibration:
             if self.wheel_calibration is None:
                 self.wheel_calibration = NoiseScaleCalibration(2 if self._dof == 3 else 3, c.wheel_calibration_min_edges)
             if consistent:
                 self.wheel_calibration.add(d, edge.covariance, model)
             model = self.wheel_calibration.calibrated(model)
-        return WheelEdge(prev.id, kf.id, wrel, model)
+        return WheelEdge(prev.id, kf.id, wrel, model), consistent
 
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
         """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
@@ -258,19 +265,17 @@ class FrontEnd:
                 floor = self._floor(rel)
                 wheels = c.wheel_edges and prev.frame.odom is not None and frame.odom is not None
                 edge = OdometryEdge(prev.id, kf.id, rel, covs.posterior + floor, wheels)
-                wheel = self._wheel_edge(prev, kf, edge, covs.prior + floor) if wheels else None
+                wheel, agree = self._wheel_edge(prev, kf, edge, covs.prior + floor) if wheels else (None, False)
                 if wheel is not None:
                     self.wheel_edges.append(wheel)
-                else:
-                    # No wheel edge backs this step (no wheel odometry, or lumpy wheels the gate left out):
-                    # the registration alone must say how far it may have slid (a corridor, a second
-                    # match), which its Fisher information does not. Where a wheel edge stays, it bounds
-                    # the slide in the graph.
-                    slide = self._ambiguity(prev, kf, rel)
-                    if np.any(slide):
-                        self.slid_edges += 1
-                        self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:2, :2])[-1])))
-                        edge.covariance = edge.covariance + slide
+                # No wheel edge backs the step, or smooth wheels disagree with it: the registration must say how
+                # far it may have slid (a corridor, a second match), which its Fisher information does not. A
+                # wheel edge beside it then holds the step; where the wheels agree, the two edges stand as they are.
+                slide = self._ambiguity(prev, kf, rel) if not agree else np.zeros((self._dof, self._dof))
+                if np.any(slide):
+                    self.slid_edges += 1
+                    self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:2, :2])[-1])))
+                    edge.covariance = edge.covariance + slide
             if self._keep:
                 self.keyframes.append(kf)
             self._last = kf
