@@ -97,9 +97,11 @@ class Chain:
     """Prefix products and compounded covariances of a keyframe chain, for any pair in O(1).
 
     With right perturbations, ``T_ab = Π_{k=a+1..b} μ_k Exp(ξ_k)`` gives ``Σ_ab = Ad(C_b)⁻¹ (S_b − S_a) Ad(C_b)⁻ᵀ``
-    where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``. The loop closer's two random constants
-    (:mod:`slam.loops.uncertainty`) add ``σ_b² u uᵀ`` and ``σ_k² w wᵀ``: a heading error ``b ℓ_m`` (``k Δθ_m``) at step
-    *m* enters as ``Ad(C_m) (0, 0, ℓ_m)`` (``(0, 0, Δθ_m)``), so u and w are prefix sums, exact to first order."""
+    where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``. Two random constants may be added: the
+    loop closer's heading rate (:mod:`slam.loops.uncertainty`), ``σ_b² u uᵀ``, and a scale error of the rotation
+    (measured here; the closer does not model it), ``σ_k² w wᵀ``: a heading error ``b ℓ_m`` (``k Δθ_m``) at step *m*
+    enters as ``Ad(C_m) (0, 0, ℓ_m)`` (``(0, 0, Δθ_m)``), so u and w are prefix sums, exact to first order.
+    ``turn[k]`` is the summed signed turn Σ_{m ≤ k} Δθ_m."""
 
     def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0) -> None:
         K = len(mu)
@@ -110,12 +112,13 @@ class Chain:
         self.S = np.zeros((K, 3, 3))
         self.J = np.zeros((K, 3))  # J_k = Σ_{m ≤ k} Ad(C_m) (0, 0, ℓ_m): the heading rate's prefix
         self.W = np.zeros((K, 3))  # W_k = Σ_{m ≤ k} Ad(C_m) (0, 0, Δθ_m): the rotation scale error's prefix
+        self.turn = np.r_[0.0, np.cumsum(np.arctan2(mu[1:, 1, 0], mu[1:, 0, 0]))] if K else np.zeros(0)
         for k in range(1, K):
             self.C[k] = self.C[k - 1] @ mu[k]
             A = G.adjoint(self.C[k], planar=True)
             self.S[k] = self.S[k - 1] + A @ cov[k] @ A.T
             self.J[k] = self.J[k - 1] + A[:, 2] * float(np.linalg.norm(mu[k][:2, 3]))
-            self.W[k] = self.W[k - 1] + A[:, 2] * float(np.arctan2(mu[k][1, 0], mu[k][0, 0]))
+            self.W[k] = self.W[k - 1] + A[:, 2] * (self.turn[k] - self.turn[k - 1])
 
     def relative(self, a: int, b: int) -> tuple[Array, Array]:
         """``a_T_b`` along the chain and its covariance (a ≤ b)."""
@@ -147,7 +150,6 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
     are left out."""
     chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]  # odometry path length at each keyframe
-    turn = np.r_[0.0, np.cumsum(np.arctan2(mu[1:, 1, 0], mu[1:, 0, 0]))]  # summed signed turn at each keyframe
     rows = []
     for (sa, sb), delta in zip(pairs, truth):
         if sa > sb:
@@ -166,7 +168,7 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
         e = G.se2_log(G.relative(delta, est))
         rows.append((kb - ka, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
                      float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[kb] - path[ka]),
-                     float(e[2]), float(turn[kb] - turn[ka])))
+                     float(e[2]), float(chain.turn[kb] - chain.turn[ka])))
     return np.array(rows, dtype=float).reshape(-1, 9)
 
 

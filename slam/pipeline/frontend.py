@@ -271,11 +271,12 @@ class FrontEnd:
                 # No wheel edge backs the step, or smooth wheels disagree with it: the registration must say how
                 # far it may have slid (a corridor, a second match), which its Fisher information does not. A
                 # wheel edge beside it then holds the step; where the wheels agree, the two edges stand as they are.
-                slide = self._ambiguity(prev, kf, rel) if not agree else np.zeros((self._dof, self._dof))
-                if np.any(slide):
-                    self.slid_edges += 1
-                    self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:2, :2])[-1])))
-                    edge.covariance = edge.covariance + slide
+                if not agree:
+                    slide = self._ambiguity(prev, kf, rel)
+                    if np.any(slide):
+                        self.slid_edges += 1
+                        self.max_slide_m = max(self.max_slide_m, float(np.sqrt(np.linalg.eigvalsh(slide[:2, :2])[-1])))
+                        edge.covariance = edge.covariance + slide
             if self._keep:
                 self.keyframes.append(kf)
             self._last = kf
