@@ -604,13 +604,31 @@ def test_the_maximum_consistent_set_is_the_maximum_clique():
         adj = adj | adj.T
         closures = [LoopClosure(0, 100 + k, np.eye(4), np.eye(3), 1.0, 0.0, "spatial") for k in range(n)]
         index = {id(c): k for k, c in enumerate(closures)}
-        acc.consistent = lambda a, b, P, _adj=adj, _ix=index: bool(_adj[_ix[id(a)], _ix[id(b)]])  # type: ignore[method-assign]
+        acc._consistency = lambda cs, P, _adj=adj, _ix=index: np.array(  # type: ignore[method-assign]
+            [[a is b or bool(_adj[_ix[id(a)], _ix[id(b)]]) for b in cs] for a in cs])
         got = acc._max_consistent_set(closures, np.zeros((1, 4, 4)))
         best = max(len(s) for r in range(1, n + 1) for s in itertools.combinations(range(n), r)
                    if all(adj[a, b] for a, b in itertools.combinations(s, 2)))
         members = [index[id(c)] for c in got]
         assert len(got) == best
         assert all(adj[a, b] for a, b in itertools.combinations(members, 2))
+
+
+def test_the_consistency_matrix_is_the_pairwise_test():
+    """The matrix the clique search reads (relative poses and chain variances computed once per keyframe pair)
+    holds exactly what :meth:`Acceptance.consistent` says of each pair: closures from a few new keyframes to a
+    few old ones, with random offsets some of which break the cycle."""
+    rng = np.random.default_rng(3)
+    acc = _acceptance(K=60, step_cov=1e-4)
+    poses = _line(60)
+    closures = []
+    for _ in range(14):
+        i, j = int(rng.integers(0, 6)), int(rng.integers(50, 55))
+        T = G.relative(poses[i], poses[j]) @ G.se2_exp(rng.normal(0.0, [0.05, 0.05, 0.01]) * rng.choice([1.0, 20.0]))
+        closures.append(LoopClosure(i, j, T, np.diag([1e-4, 1e-4, 1e-5]), 1.0, 0.0, "spatial"))
+    ok = acc._consistency(closures, poses)
+    pairwise = np.array([[a is b or acc.consistent(a, b, poses) for b in closures] for a in closures])
+    assert np.array_equal(ok, pairwise) and 0 < ok.sum() < ok.size
 
 
 def test_to_closure_carries_the_alignment_and_its_covariance_through_the_sensor_mounts():

@@ -276,18 +276,52 @@ class Acceptance:
         between their new keyframes (:meth:`RelativeUncertainty.chain_variance`; *old_variance*, when
         given, replaces the old keyframes'), rotation variance carried to translation over the closures'
         lever arm."""
-        E = (G.inverse(a.measurement) @ G.relative(poses[a.i], poses[b.i]) @ b.measurement
-             @ G.relative(poses[b.j], poses[a.j]))
+        pos = poses[:, :(2 if self.planar else 3), 3]
+        return self._cycle(a, b, G.relative(poses[a.i], poses[b.i]), G.relative(poses[b.j], poses[a.j]),
+                           self.uncertainty.chain_variance(a.i, b.i, pos) if old_variance is None else old_variance,
+                           self.uncertainty.chain_variance(a.j, b.j, pos))
+
+    def _cycle(self, a: LoopClosure, b: LoopClosure, rel_old: Array, rel_new: Array,
+               var_old: tuple[float, float], var_new: tuple[float, float]) -> bool:
+        """:meth:`consistent` given the graph's relative poses X_ia⁻¹ X_ib and X_jb⁻¹ X_ja and the two chain
+        variances."""
+        E = G.inverse(a.measurement) @ rel_old @ b.measurement @ rel_new
         e = G.se2_log(E) if self.planar else G.se3_log(E)
         d = 2 if self.planar else 3
-        pos = poses[:, :d, 3]
-        ti, ri = self.uncertainty.chain_variance(a.i, b.i, pos) if old_variance is None else old_variance
-        tj, rj = self.uncertainty.chain_variance(a.j, b.j, pos)
+        (ti, ri), (tj, rj) = var_old, var_new
         var_r = ri + rj + np.trace(a.covariance[d:, d:]) + np.trace(b.covariance[d:, d:])
         lever2 = float(np.sum(a.measurement[:d, 3] ** 2) + np.sum(b.measurement[:d, 3] ** 2))
         var_t = ti + tj + np.trace(a.covariance[:d, :d]) + np.trace(b.covariance[:d, :d]) + var_r * lever2
         m2 = float(e[:d] @ e[:d]) / (var_t / d) + float(e[d:] @ e[d:]) / (var_r / (self.dof - d))
         return m2 <= self.gate
+
+    def _consistency(self, closures: list[LoopClosure], poses: Array) -> NDArray[np.bool_]:
+        """The ``(n, n)`` matrix of :meth:`consistent` over *closures*. A window's closures join a few new
+        keyframes to a few old ones, so the graph's relative poses and chain variances are computed once per
+        pair of keyframes, not once per pair of closures."""
+        n = len(closures)
+        pos = poses[:, :(2 if self.planar else 3), 3]
+        rel: dict[tuple[int, int], Array] = {}
+        var: dict[tuple[int, int], tuple[float, float]] = {}
+
+        def rel_of(u: int, v: int) -> Array:
+            if (u, v) not in rel:
+                rel[u, v] = G.relative(poses[u], poses[v])
+            return rel[u, v]
+
+        def var_of(u: int, v: int) -> tuple[float, float]:
+            if (u, v) not in var:
+                var[u, v] = self.uncertainty.chain_variance(u, v, pos)
+            return var[u, v]
+
+        ok = np.eye(n, dtype=bool)
+        for x in range(n):
+            a = closures[x]
+            for y in range(x + 1, n):
+                b = closures[y]
+                ok[x, y] = ok[y, x] = self._cycle(a, b, rel_of(a.i, b.i), rel_of(b.j, a.j), var_of(a.i, b.i),
+                                                  var_of(a.j, b.j))
+        return ok
 
     def _max_consistent_set(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The largest pairwise-consistent subset (maximum clique of the consistency graph, Bron–Kerbosch
@@ -295,10 +329,7 @@ class Acceptance:
         n = len(closures)
         if n == 0:
             return []
-        ok = np.eye(n, dtype=bool)
-        for a in range(n):
-            for b in range(a + 1, n):
-                ok[a, b] = ok[b, a] = self.consistent(closures[a], closures[b], poses)
+        ok = self._consistency(closures, poses)
         nbrs = [set(np.flatnonzero(ok[a]).tolist()) - {a} for a in range(n)]
         best: list[int] = []
 
