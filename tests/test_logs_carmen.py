@@ -84,12 +84,12 @@ def intel_frames() -> list[Frame]:
 # ----------------------------------------------------------------------------- real logs
 
 def test_intel_scan_count_and_beam_geometry(intel_frames):
-    """Intel has 13,631 FLASER scans of 180 beams spread evenly over 180° from −90° (SOURCE.md)."""
+    """Intel has 13,631 FLASER scans of 180 beams (SOURCE.md), 1° apart from −90° (CARMEN's own reader)."""
     assert len(intel_frames) == 13631
     f = intel_frames[0]
     assert f.num_beams == 180
-    assert f.angles[0] == pytest.approx(-math.pi / 2) and f.angles[-1] == pytest.approx(math.pi / 2)
-    assert np.allclose(np.diff(f.angles), math.pi / 179)
+    assert np.allclose(np.diff(f.angles), math.pi / 180)  # the SICK's 1° mode (flaser_layout)
+    assert f.angles[0] == pytest.approx(-math.pi / 2) and f.angles[-1] == pytest.approx(math.radians(89.0))
     assert [fr.index for fr in intel_frames[:5]] == [0, 1, 2, 3, 4]
     assert intel_frames[0].source == "intel.clf.bz2:line 13"
 
@@ -181,6 +181,51 @@ def test_flaser_line_round_trip():
     np.testing.assert_allclose(geo.matrix_to_xytheta(f.odom @ f.base_T_sensor), laser, atol=1e-12)
     np.testing.assert_allclose(f.base_T_sensor[:3, 3], [0.04, 0.0, 0.0], atol=1e-12)
     assert f.max_range == DEFAULT_FLASER_MAX_RANGE
+
+
+ROOM = (-3.0, 5.0, -2.0, 4.0)  # x_min, x_max, y_min, y_max of a box-shaped room (m)
+
+
+def _room_scan(pose: tuple[float, float, float], angles: np.ndarray) -> np.ndarray:
+    """Ranges from *pose* (x, y, θ) inside ROOM along the laser-frame *angles*: the nearest wall."""
+    x, y, th = pose
+    c, s = np.cos(th + angles), np.sin(th + angles)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 0, (ROOM[1] - x) / c, (ROOM[0] - x) / c)
+        ty = np.where(s > 0, (ROOM[3] - y) / s, (ROOM[2] - y) / s)
+    return np.minimum(np.abs(tx), np.abs(ty))
+
+
+def _sick(n: int) -> np.ndarray:
+    """Beam angles of a SICK LMS in the mode whose line has n beams: its step from −90°."""
+    step = math.radians(1.0 if n in (180, 181) else 0.5)
+    return -0.5 * math.pi + step * np.arange(n)
+
+
+@pytest.mark.parametrize("n", [180, 181, 360, 361])
+def test_flaser_beams_of_a_known_room_read_back_onto_its_walls(n):
+    """A SICK's scan of a box-shaped room written as an n-beam FLASER line reads back with every point on a
+    wall: the reader spaces the beams at the mode's step (1° or 0.5°), not 180° / (n − 1), which for 180
+    beams misplaces the outer points by 0.5° (4 cm at 5 m)."""
+    pose = (0.4, 0.3, 0.2)
+    f = parse_laser_line(flaser(np.round(_room_scan(pose, _sick(n)), 12), pose, pose))
+    p = geo.transform_points(f.odom @ f.base_T_sensor, f.points)
+    off_wall = np.min(np.abs(np.column_stack([p[:, 0] - ROOM[0], p[:, 0] - ROOM[1], p[:, 1] - ROOM[2], p[:, 1] - ROOM[3]])), axis=1)
+    assert f.num_beams == n and off_wall.max() < 1e-9
+
+
+def test_a_turn_between_two_flaser_scans_is_measured_unscaled():
+    """Two 180-beam scans of a room 27.3° and 0.3 m apart, read and registered (point-to-plane ICP): the
+    turn comes out at 27.3° to 0.02°. Beams spread over 180° would stretch each scan by 180/179 and the
+    registration would turn the robot that much too far (0.15° here, 2° per full circle)."""
+    from registration.point_to_plane import icp_point_to_plane
+
+    a, b = (0.4, 0.3, 0.2), (0.6, 0.5, 0.2 + math.radians(27.3))
+    fa, fb = (parse_laser_line(flaser(np.round(_room_scan(p, _sick(180)), 12), p, p)) for p in (a, b))
+    truth = geo.relative(geo.xytheta_to_matrix(*a), geo.xytheta_to_matrix(*b))
+    res = icp_point_to_plane(fb.points, fa.points, geo.xytheta_to_matrix(0.25, 0.1, 0.45))
+    err = geo.matrix_to_xytheta(geo.relative(truth, res.transform))
+    assert abs(math.degrees(err[2])) < 0.02 and np.hypot(err[0], err[1]) < 2e-3
 
 
 def test_rlaser_faces_backwards():

@@ -94,6 +94,26 @@ _Beams = tuple[np.ndarray, np.ndarray, np.ndarray]
 _ANGLE_CACHE: dict[tuple[float, float, int], _Beams] = {}
 
 
+def flaser_layout(n: int) -> tuple[float, float]:
+    """``(first beam angle, step)`` (rad) of an n-beam FLASER/RLASER line, whose beam angles the line does not carry.
+
+    The step is the SICK LMS's in the mode the count names, as CARMEN's own reader guesses it
+    (``carmen_laser_guess_angle_increment``, logtools/readlog.c): 1° for 180 or 181 beams, 0.5° for 360 or
+    361, 0.25° for 400 or 401 (a 180-, 360- or 400-beam line lacks one beam of the mode's 181, 361 or 401);
+    any other count spreads 180° over the n beams. The first beam is at −90°, as in CARMEN (a 180-beam line
+    ends at +89°). Spreading 180 beams over 180° instead stretches every scan by 0.56 %, and a scan matcher
+    then turns the robot 0.56 % too far (``docs/ODOMETRY.md``)."""
+    if n in (180, 181):
+        step = math.pi / 180.0
+    elif n in (360, 361):
+        step = math.pi / 360.0
+    elif n in (400, 401):
+        step = math.pi / 720.0
+    else:
+        step = math.pi / (n - 1) if n > 1 else 0.0
+    return -0.5 * math.pi, step
+
+
 def _beam_angles(start: float, step: float, n: int) -> _Beams:
     """``(angles, cos, sin)`` with ``angles = start + i·step`` for i < n (rad).
 
@@ -140,7 +160,7 @@ def parse_numbers(tokens: list[bytes], path: str, lineno: int) -> LaserLine:
         vals = parse_floats(tokens[2:n + 8], path, lineno, tag, 3)
         ranges, poses = vals[:n], vals[n:]
         laser, robot = poses[:3], poses[3:]
-        angles = _beam_angles(-0.5 * math.pi, math.pi / (n - 1) if n > 1 else 0.0, n)
+        angles = _beam_angles(*flaser_layout(n), n)
         max_range = None
     else:  # ROBOTLASER1 / ROBOTLASER2
         if nt < 10:
@@ -314,7 +334,7 @@ def flaser_block(
     P = vals[:, n:n + 6]
     odom = geo.xytheta_to_matrix(P[:, 3:6])
     b_T_s = _mounting([tag] * m, odom, geo.xytheta_to_matrix(P[:, 0:3]))
-    angles, cos, sin = _beam_angles(-0.5 * math.pi, math.pi / (n - 1) if n > 1 else 0.0, n)
+    angles, cos, sin = _beam_angles(*flaser_layout(n), n)
     NR = R >= max_range
     XY = np.stack((R * cos, R * sin), axis=-1)
     Rout = np.where(NR, np.inf, R)
