@@ -188,7 +188,15 @@ class RayExecutor:
         """Cancel *pending* tasks and give the running ones ``cancel_grace_s`` to unwind."""
         if not pending:
             return
-        for ref in pending:
+        # Only tasks still running: a cancel that races with the task's own completion reply aborts the driver
+        # (Ray 2.60: "Check failed: ... Tried to complete task that was not pending"; the race of
+        # ray-project/ray#54798), so the finished ones are left alone and the window shrinks to the time
+        # between this wait and the cancel.
+        try:
+            _, running = self._ray.wait(pending, num_returns=len(pending), timeout=0)
+        except BaseException:  # noqa: BLE001 — a second Ctrl-C: cancel them all
+            running = pending
+        for ref in running:
             try:
                 self._ray.cancel(ref, force=False)
             except Exception:  # noqa: BLE001 — already finished or gone
