@@ -6,8 +6,8 @@ Format: one message per line, ``TAG field … ipc_timestamp ipc_hostname logger_
 * ``FLASER n r_1 … r_n x y theta odom_x odom_y odom_theta ipc_ts host logger_ts`` (front laser);
   ``RLASER`` has the same layout for the rear laser. The line carries no beam angles: the n beams are
   the SICK LMS's at the step of the mode their count names (1° for 180/181 beams, 0.5° for 360/361, as
-  CARMEN's own reader has them), the first at −90° (:func:`~slam.logs.carmen_lines.flaser_layout`). ``x y theta`` is the laser pose and
-  ``odom_*`` the robot pose, both in the odometry frame.
+  CARMEN's own reader has them), the first at −90° (:func:`~slam.logs.carmen_lines.flaser_layout`).
+  ``x y theta`` is the laser pose and ``odom_*`` the robot pose, both in the odometry frame.
 * ``ROBOTLASER1 laser_type start_angle fov angular_res max_range accuracy remission_mode n r_1 … r_n
   n_rem rem_1 … rem_k laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv fwd_safety
   side_safety turn_axis ipc_ts host logger_ts`` (``ROBOTLASER2`` likewise, second laser):
