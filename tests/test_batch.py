@@ -348,6 +348,28 @@ def test_hashes_follow_content_not_names(tmp_path):
     assert config_sha256(c | {"stage_processes": not c["stage_processes"]}, None, {"relations": None}) == h
     assert config_sha256(c | {"max_scans": 10}, None, {"relations": None}) != h
     assert config_sha256(c, None, {"relations": "0" * 64}) != h
+    assert config_sha256(c, None, {"relations": None}, code="0" * 64) != h  # rows another version made are rerun
+
+
+def test_the_code_hash_follows_the_packages_sources(tmp_path):
+    """code_sha256 reads every .py file of the installed packages: a changed byte in one changes it, a file
+    outside them (tests, docs) does not; the project's own tree hashes as the running code."""
+    from slam.batch.fingerprint import PACKAGES, code_sha256
+
+    for pkg in PACKAGES:
+        (tmp_path / pkg / "sub").mkdir(parents=True)
+        (tmp_path / pkg / "sub" / "m.py").write_text(f"X = '{pkg}'\n")
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "t.py").write_text("pass\n")
+    h = code_sha256(str(tmp_path))
+    (tmp_path / "tests" / "t.py").write_text("assert True\n")
+    (tmp_path / "README.md").write_text("# changed\n")
+    code_sha256.cache_clear()
+    assert code_sha256(str(tmp_path)) == h
+    (tmp_path / "slam" / "sub" / "m.py").write_text("X = 'slam!'\n")
+    code_sha256.cache_clear()
+    assert code_sha256(str(tmp_path)) != h
+    assert code_sha256(str(REPO)) == code_sha256()
 
 
 @pytest.mark.parametrize("body, where, what", [

@@ -5,19 +5,24 @@ A finished run folder holds ``batch.json`` (written into it before it is moved i
 row. A run is skipped on resume when that file exists and both hashes equal the job's.
 
 The config hash is the SHA-256 of the canonical JSON (sorted keys) of the effective configuration
-without ``stage_processes`` (the results are the same either way), the sensor topic and the content
-hashes of the reference files the run is evaluated against: a changed relations file reruns too.
+without ``stage_processes`` (the results are the same either way), the sensor topic, the content
+hashes of the reference files the run is evaluated against (a changed relations file reruns too) and
+the hash of the code that computes the runs (:func:`code_sha256`): a batch resumed after an upgrade, or
+after any edit of the project's packages, runs again instead of keeping rows another version made.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BATCH_FILE", "content_sha256", "config_sha256", "completed_row"]
+__all__ = ["BATCH_FILE", "content_sha256", "code_sha256", "config_sha256", "completed_row"]
+
+PACKAGES = ("core", "evaluation", "mapping", "registration", "slam")  # what pyproject installs
 
 BATCH_FILE = "batch.json"
 _CHUNK_BYTES = 1 << 20
@@ -38,10 +43,24 @@ def content_sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
-def config_sha256(config: dict[str, Any], topic: str | None, reference_sha256: dict[str, str | None]) -> str:
-    """Hash of what a run computes from its log (module docstring); *config* is ``SlamConfig.model_dump(mode="json")``."""
+@functools.lru_cache(maxsize=8)
+def code_sha256(root: str | None = None) -> str:
+    """SHA-256 of every ``.py`` file of the project's :data:`PACKAGES` under *root* (default: where this
+    package is installed), each path relative to *root* and its bytes, in sorted order."""
+    base = Path(root) if root is not None else Path(__file__).resolve().parents[2]
+    h = hashlib.sha256()
+    for f in sorted(f for pkg in PACKAGES for f in (base / pkg).rglob("*.py")):
+        h.update(str(f.relative_to(base)).encode() + b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def config_sha256(config: dict[str, Any], topic: str | None, reference_sha256: dict[str, str | None],
+                  code: str | None = None) -> str:
+    """Hash of what a run computes from its log (module docstring); *config* is ``SlamConfig.model_dump(mode="json")``,
+    *code* the code's hash (default :func:`code_sha256`)."""
     cfg = {k: v for k, v in config.items() if k != "stage_processes"}
-    doc = {"config": cfg, "topic": topic, "reference": reference_sha256}
+    doc = {"config": cfg, "topic": topic, "reference": reference_sha256, "code": code if code is not None else code_sha256()}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
 
