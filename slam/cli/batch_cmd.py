@@ -7,7 +7,7 @@ run is :func:`slam.cli.batch_task.run_job` (the ``slam run --eval`` code path) i
 cluster), writing ``DIR/runs/<log>/<setting>/`` atomically. Then ``results.csv``, ``results.json``,
 ``results.md`` and ``report.html`` (:mod:`evaluation.batch_report`). A failed run is its row's
 ``failed: …`` and the exit status 1; the others finish. With ``--resume`` (the default) a run whose
-folder holds a complete result for the same log content and config hash is not run again. Ctrl-C
+folder holds a complete result for the same log content, config and code hash is not run again. Ctrl-C
 cancels the outstanding runs and keeps the finished ones; no staging folder is left behind.
 """
 
@@ -66,7 +66,7 @@ def batch(
     cpus_per_run: float = typer.Option(1.0, "--cpus-per-run", help="CPUs Ray reserves per run. With 1 the stage "
                                        "processes are off inside a run; with 2 or more they run as configured."),
     resume: bool = typer.Option(True, "--resume/--no-resume", help="Skip runs whose folder holds a complete result "
-                                "for the same log content and config hash."),
+                                "for the same log content, config and code (the installed packages' sources)."),
     quiet: bool = typer.Option(False, "--quiet", help="No progress bar, no line per run; only the final table."),
 ) -> None:
     """Run SLAM over many logs × many settings, each run a Ray task; one table and report for them all."""
