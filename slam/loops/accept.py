@@ -32,6 +32,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -301,19 +302,8 @@ class Acceptance:
         pair of keyframes, not once per pair of closures."""
         n = len(closures)
         pos = poses[:, :(2 if self.planar else 3), 3]
-        rel: dict[tuple[int, int], Array] = {}
-        var: dict[tuple[int, int], tuple[float, float]] = {}
-
-        def rel_of(u: int, v: int) -> Array:
-            if (u, v) not in rel:
-                rel[u, v] = G.relative(poses[u], poses[v])
-            return rel[u, v]
-
-        def var_of(u: int, v: int) -> tuple[float, float]:
-            if (u, v) not in var:
-                var[u, v] = self.uncertainty.chain_variance(u, v, pos)
-            return var[u, v]
-
+        rel_of = functools.cache(lambda u, v: G.relative(poses[u], poses[v]))
+        var_of = functools.cache(lambda u, v: self.uncertainty.chain_variance(u, v, pos))
         ok = np.eye(n, dtype=bool)
         for x in range(n):
             a = closures[x]
