@@ -97,7 +97,32 @@ def test_a_match_away_from_the_estimate_must_outscore_the_stretch_back_to_it():
     turned = G.xytheta_to_matrix(0.4, 0.1, np.radians(10.0))  # an estimate whose heading drifted beyond the floor
     for estimate, bound, unique in ((truth @ off, None, False), (None, None, True), (alias @ off, None, True),
                                     (truth @ off, 16.3, True), (truth @ turned, None, True)):
-        cand = Candidate(i, j, Source.SPATIAL, alias, Window(8.0, np.radians(5.0)),
+        # a window of ±4 m round the match: the right pose, 5 m away, lies outside what was searched
+        cand = Candidate(i, j, Source.SPATIAL, alias, Window(4.0, np.radians(5.0)),
+                         None if estimate is None else (estimate, cov), False, max_mahalanobis2=bound)
+        assert v.unique(Verified(cand, alias, np.eye(3) * 1e-4, 0.9, 0.02, 0.8, 40), kfs, poses, 40) is unique
+
+
+def test_a_match_is_not_unique_when_its_own_search_window_holds_a_rival():
+    """The same bays: a search window of ±8 m round the guess holds both the alias it returned and the right
+    pose one bay back, beyond the ±3 m uniqueness box round the match. Every pose of a window the estimate's
+    uncertainty sized is as likely a priori, so the near-tie there makes the match ambiguous — with an
+    estimate that gives no guide back (none, at the match, or turned past the heading floor) too. A global
+    search (max_mahalanobis2 set) is held to the estimate afterwards, and a window that the bays' period does
+    not fit into (±4 m) holds no rival."""
+    path = [(x, 1.0, 0.0) for x in np.linspace(20.0, 60.0, 81)]
+    kfs, poses = _path_and_revisit(corridor_with_bays(5.0, 80.0), path, (40.1, 1.05, np.radians(1.0)))
+    j, i = len(kfs) - 1, 40
+    truth = G.relative(poses[i], poses[j])
+    alias = G.xytheta_to_matrix(5.0, 0.0, 0.0) @ truth
+    v = Verifier(LoopConfig(correlative_max_range_m=12.0), True, LocalMaps())
+    cov = np.diag([4.0, 4.0, 0.01])
+    turned = G.xytheta_to_matrix(0.4, 0.1, np.radians(10.0))
+    guess = alias @ G.xytheta_to_matrix(-1.0, 0.0, 0.0)  # where the search was centred: between the two
+    for estimate, bound, window, unique in ((None, None, 8.0, False), (alias, None, 8.0, False),
+                                            (truth @ turned, None, 8.0, False), (None, 16.3, 8.0, True),
+                                            (None, None, 3.5, True)):
+        cand = Candidate(i, j, Source.SPATIAL, guess, Window(window, np.radians(5.0)),
                          None if estimate is None else (estimate, cov), False, max_mahalanobis2=bound)
         assert v.unique(Verified(cand, alias, np.eye(3) * 1e-4, 0.9, 0.02, 0.8, 40), kfs, poses, 40) is unique
 

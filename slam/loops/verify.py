@@ -206,9 +206,9 @@ class Verifier:
     def unique(self, v: Verified, keyframes: list[Keyframe], poses: Array, half: int) -> bool:
         """Whether the verified alignment *v* is locally unique: no pose beyond a few cells and degrees of it,
         within three floor windows of it (and within its search window) at any heading, nor on the stretch
-        between it and the estimate's pose (one floor window round it), scores within
-        ``ambiguity_ratio`` of its own score (2D with the correlative search; True
-        otherwise). Asked of every alignment the acceptance stage holds pending: accepted only in a group
+        between it and the estimate's pose (one floor window round it), nor anywhere in its own search window
+        (:meth:`_window_rival`), scores within ``ambiguity_ratio`` of its own score (2D with the correlative
+        search; True otherwise). Asked of every alignment the acceptance stage holds pending: accepted only in a group
         against the estimate, it must not be one of several equally good poses (a corridor's slides, the
         doors along it)."""
         c = v.candidate
@@ -262,8 +262,22 @@ class Verifier:
         radius = UNIQUE_RADIUS_CELLS * pyr.resolution
         other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, UNIQUE_RADIUS_RAD, floor * own)
         near = self._stretch_rival(pts, pyr, c, T, xy, radius, floor * own)
-        other = max((s for s in (other, near) if s is not None), default=None)
+        searched = self._window_rival(pts, pyr, c, T, radius, floor * own)
+        other = max((s for s in (other, near, searched) if s is not None), default=None)
         return 0.0 if other is None else other / own
+
+    def _window_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, radius: float,
+                      min_score: float) -> float | None:
+        """The best score above *min_score* anywhere in the candidate's own search window, leaving out *T*'s
+        neighbourhood; None when the window is bounded by the three floor windows round *T* anyway, or when
+        the estimate's covariance does not bound the search (a global one: its match is held to the estimate
+        afterwards). Every pose of a window sized by the estimate's uncertainty is as likely a priori as the
+        match: a rival there scoring almost as well is an ambiguity the estimate cannot resolve, however far it
+        lies from the match."""
+        if c.max_mahalanobis2 is not None or c.window.xy_m <= self.config.window_floor_m:
+            return None
+        return correlative.best_elsewhere(pts, pyr, c.guess, c.window.xy_m, c.window.theta_rad, T, radius,
+                                          UNIQUE_RADIUS_RAD, min_score)
 
     def _stretch_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, xy: float,
                        radius: float, min_score: float) -> float | None:
