@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from core import geometry as G
 from core.errors import DegenerateInputError
 from registration import correlative
+from registration.voxel import voxel_keys
 from slam.keyframes import Keyframe
 
 from .config import LoopConfig
@@ -78,7 +79,7 @@ def _path_match(keyframes: list[Keyframe], poses: Array, j: int, i: int, lo: int
     recent, old = found
     res = config.correlative_resolution_m if resolution_m is None else resolution_m
     query = _cloud(keyframes, poses, j, recent)
-    query = query[np.unique(np.floor(query / res).astype(np.int64), axis=0, return_index=True)[1]]
+    query = query[np.unique(voxel_keys(query, res), return_index=True)[1]]  # a point a cell, in the cells' order
     return query, correlative.LikelihoodPyramid(_cloud(keyframes, poses, i, old), res, res, levels=PYRAMID_LEVELS)
 
 
