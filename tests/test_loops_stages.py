@@ -562,6 +562,33 @@ def test_a_return_to_two_passes_the_graph_misplaced_gives_a_group_against_each()
     assert acc.stats.pending_expired == 3
 
 
+def test_closures_against_a_place_the_chain_cannot_compare_count_in_their_own_group_not_in_this_one():
+    """The return (30–34) meets the corridor's first pass (0–4) five times, right; twice (30, 31) it also meets the
+    second pass (20, 21), 0.6 m off. The 20 keyframes between the passes carry 1.4 dm of translation σ a step, so
+    the pairwise test between the two sets passes whatever they say: the wrong pair agrees with every right
+    closure without being compared with any. It counts in its own place's group — two keyframes, one short —
+    and expires; the five stand. (Before, the clique took all seven.)"""
+    W = LoopConfig().group_window_keyframes
+    truth = _two_passes_truth()
+    rng = np.random.default_rng(11)
+    right = _closures(truth, zip(range(5), range(30, 35)), rng)
+    wrong = _closures(truth, zip(range(20, 22), range(30, 32)), rng, G.xytheta_to_matrix(0.6, 0.0, 0.0))
+    ru = RelativeUncertainty(planar=True)
+    for k in range(1, 60):
+        ru.add_edge(k - 1, k, np.diag([1e-2, 1e-2, 1e-6]))
+    acc = Acceptance(LoopConfig(), True, ru, LoopStats())
+    pos = truth[:, :2, 3]
+    assert C.vouches(*ru.chain_variance(0, 4, pos), LoopConfig(), True)
+    assert not C.vouches(*ru.chain_variance(0, 20, pos), LoopConfig(), True)
+    kfs = _keyframes(60)
+    assert all(acc.consistent(to_closure(a, kfs, True), to_closure(b, kfs, True), truth) for a in right for b in wrong)
+    for v in right + wrong:
+        acc.consider(v, kfs, _line(60), lambda v: True)
+    group = acc.decide(30 + W - 1, truth)
+    assert sorted((lc.i, lc.j) for lc in group) == list(zip(range(5), range(30, 35)))
+    assert acc.stats.pending_expired == 2
+
+
 def test_of_two_rival_groups_at_one_place_the_one_whose_path_fits_better_is_taken():
     """A return along a corridor whose doors repeat: three closures place it right, five (against more old
     keyframes) 2 m along, each set consistent, the two at odds through the short, sure stretch 0–4. The larger

@@ -10,11 +10,11 @@
 * Everything else — an alignment the estimate cannot vouch for — waits, *pending*. But none outside
   three of the windows the estimate itself would have searched (9 σ per axis, with the floors), when
   the place lies within spatial reach: a descriptor match of a corridor seen turned round is an alias
-  no group may overturn. Pending closures are
-  accepted together when ``group_min_size`` of them, from as many keyframes, are pairwise consistent
-  — each pair's cycle through the estimate's short stretches between their old and between their new
-  keyframes passes the same χ² gate (pairwise consistent measurement set maximisation, PCM: Mangelson,
-  Dominic, Eustice & Vasudevan, ICRA 2018; the maximum clique is exact here) — and no closure
+  no group may overturn. Pending closures are accepted together when ``group_min_size`` of them, from
+  as many keyframes, are pairwise consistent — each pair's cycle through the estimate's short stretches
+  between their old and between their new keyframes passes the same χ² gate (pairwise consistent
+  measurement set maximisation, PCM: Mangelson, Dominic, Eustice & Vasudevan, ICRA 2018; the maximum
+  clique is exact here), at one old place (:meth:`Acceptance._one_place`) — and no closure
   accepted on its own between the same stretches disagrees with them. A group is decided once the
   window of ``group_window_keyframes`` after its first member has passed, so the evidence against it
   that arrives in that window (a closure accepted where the estimate was) is seen. The window's other
@@ -170,8 +170,8 @@ class Acceptance:
         return self._agreeing([p.closure for p in held], poses)
 
     def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
-        """The groups among *closures*: the largest pairwise-consistent subset (or its rival at the same place
-        whose recent path fits better, :meth:`_fitter`), accepted when it spans ``group_min_size`` new
+        """The groups among *closures*: the largest pairwise-consistent subset, its part at one old place
+        (:meth:`_one_place`; or its rival there whose recent path fits better, :meth:`_fitter`), accepted when it spans ``group_min_size`` new
         keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm` (when set) agrees; then
         the same again among the closures against *other* old places — those whose old keyframe the graph
         cannot vouch for relative to any accepted member's (:meth:`_other_places`) — until no group is left
@@ -182,7 +182,7 @@ class Acceptance:
         accepted: list[LoopClosure] = []
         left = closures
         while left:
-            group = self._max_consistent_set(left, poses)
+            group = self._one_place(self._max_consistent_set(left, poses), poses)
             if len({lc.j for lc in group}) < self.config.group_min_size:
                 break
             others = self._other_places(left, group, poses)
@@ -222,6 +222,32 @@ class Acceptance:
             return group
         self.stats.groups_by_path += 1
         return rival
+
+    def _one_place(self, group: list[LoopClosure], poses: Array) -> list[LoopClosure]:
+        """The part of a consistent *group* at one old place (members linked through old keyframes whose chain
+        vouches, as :meth:`_other_places` tells places apart) with most distinct new keyframes. Between places
+        the chain cannot vouch for, the pairwise test's variance passes anything: a closure there agrees with
+        every member without being compared with any, so it counts in its own place's group, not this one's."""
+        olds = sorted({lc.i for lc in group})
+        if len(olds) < 2:
+            return group
+        d = 2 if self.planar else 3
+        pos = poses[:, :d, 3]
+        root = {i: i for i in olds}
+
+        def find(i: int) -> int:
+            while root[i] != i:
+                i = root[i]
+            return i
+
+        for x, a in enumerate(olds):
+            for b in olds[x + 1:]:
+                if find(a) != find(b) and vouches(*self.uncertainty.chain_variance(a, b, pos), self.config, self.planar):
+                    root[find(b)] = find(a)
+        parts: dict[int, list[LoopClosure]] = {}
+        for lc in group:
+            parts.setdefault(find(lc.i), []).append(lc)
+        return max(parts.values(), key=lambda p: (len({lc.j for lc in p}), len(p)))
 
     def _other_places(self, closures: list[LoopClosure], group: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The *closures* outside the accepted *group* whose old keyframe is at another place than every
