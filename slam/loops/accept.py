@@ -171,8 +171,9 @@ class Acceptance:
 
     def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The groups among *closures*: the largest pairwise-consistent subset, its part at one old place
-        (:meth:`_one_place`; or its rival there whose recent path fits better, :meth:`_fitter`), accepted when it spans ``group_min_size`` new
-        keyframes, no closure accepted alone nearby contradicts it and :attr:`confirm` (when set) agrees; then
+        (:meth:`_one_place`; or its rival there whose recent path fits better, :meth:`_fitter`), accepted when
+        it spans ``group_min_size`` new keyframes, no closure accepted alone nearby contradicts it and
+        :attr:`confirm` (when set) agrees; then
         the same again among the closures against *other* old places — those whose old keyframe the graph
         cannot vouch for relative to any accepted member's (:meth:`_other_places`) — until no group is left
         (the rest expire). A return seen against two old passes that the graph has

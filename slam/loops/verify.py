@@ -269,7 +269,7 @@ class Verifier:
     def _window_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, radius: float,
                       min_score: float) -> float | None:
         """The best score above *min_score* anywhere in the candidate's own search window, leaving out *T*'s
-        neighbourhood; None when the window is bounded by the three floor windows round *T* anyway, or when
+        neighbourhood; None when the window is at the floor (the three floor windows round *T* hold it), or when
         the estimate's covariance does not bound the search (a global one: its match is held to the estimate
         afterwards). Every pose of a window sized by the estimate's uncertainty is as likely a priori as the
         match: a rival there scoring almost as well is an ambiguity the estimate cannot resolve, however far it
