@@ -586,7 +586,8 @@ def test_closures_against_a_place_the_chain_cannot_compare_count_in_their_own_gr
         acc.consider(v, kfs, _line(60), lambda v: True)
     group = acc.decide(30 + W - 1, truth)
     assert sorted((lc.i, lc.j) for lc in group) == list(zip(range(5), range(30, 35)))
-    assert acc.stats.pending_expired == 2
+    assert acc.stats.pending_expired == 2 and acc.stats.left_to_their_place == 2
+    assert acc.stats.as_dict()["left_to_their_place"] == 2
 
 
 def test_of_two_rival_groups_at_one_place_the_one_whose_path_fits_better_is_taken():

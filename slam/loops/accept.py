@@ -1,12 +1,11 @@
 """The acceptance stage: which verified alignments become pose-graph constraints.
 
-* A verified alignment the estimate vouches for (its search window was at the floor, see
-  :mod:`slam.loops.candidates`) is accepted when it is consistent with the estimate: the squared
-  Mahalanobis distance of the alignment from the estimate's relative pose, under the sum of both
-  covariances, is within the ``consistency_probability`` quantile of χ²(dof) (the χ² gate of
-  Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
-  One that fails the gate is rejected: where the estimate vouches, no group overturns it (a road
-  whose trees repeat every metre offered a consistent group 1 m along; docs/LOOP_CLOSURE.md has the case).
+* A verified alignment the estimate vouches for (its search window was at the floor, see :mod:`slam.loops.candidates`)
+  is accepted when it is consistent with the estimate: the squared Mahalanobis distance of the alignment from the
+  estimate's relative pose, under the sum of both covariances, is within the ``consistency_probability`` quantile
+  of χ²(dof) (the χ² gate of Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
+  One that fails the gate is rejected: where the estimate vouches, no group overturns it (a road whose trees
+  repeat every metre offered a consistent group 1 m along; docs/LOOP_CLOSURE.md has the case).
 * Everything else — an alignment the estimate cannot vouch for — waits, *pending*. But none outside
   three of the windows the estimate itself would have searched (9 σ per axis, with the floors), when
   the place lies within spatial reach: a descriptor match of a corridor seen turned round is an alias
@@ -232,9 +231,7 @@ class Acceptance:
         olds = sorted({lc.i for lc in group})
         if len(olds) < 2:
             return group
-        d = 2 if self.planar else 3
-        pos = poses[:, :d, 3]
-        root = {i: i for i in olds}
+        pos, root = poses[:, :(2 if self.planar else 3), 3], {i: i for i in olds}
 
         def find(i: int) -> int:
             while root[i] != i:
@@ -248,7 +245,9 @@ class Acceptance:
         parts: dict[int, list[LoopClosure]] = {}
         for lc in group:
             parts.setdefault(find(lc.i), []).append(lc)
-        return max(parts.values(), key=lambda p: (len({lc.j for lc in p}), len(p)))
+        part = max(parts.values(), key=lambda p: (len({lc.j for lc in p}), len(p)))
+        self.stats.left_to_their_place += len(group) - len(part)
+        return part
 
     def _other_places(self, closures: list[LoopClosure], group: list[LoopClosure], poses: Array) -> list[LoopClosure]:
         """The *closures* outside the accepted *group* whose old keyframe is at another place than every

@@ -127,6 +127,7 @@ class LoopStats:
     groups_out_of_context: int = 0  # groups refused because the recent path, matched as a whole, lands elsewhere
     unique_by_path: int = 0  # closures whose scan was ambiguous held pending because the recent path is unique there
     groups_by_path: int = 0  # groups that gave way to a rival at the same place whose recent path fits better
+    left_to_their_place: int = 0  # members of a consistent set left out of its group: their old place is one the chain cannot compare
     global_searches: int = 0
     corroborated: int = 0  # global matches beyond the estimate's gate held for a group because another agreed
     reseeks: int = 0  # keyframes sought again after a relocalisation (around refused global matches)
@@ -138,5 +139,6 @@ class LoopStats:
         d |= {r.value: self.rejections[r] for r in Rejection}
         d |= {k: getattr(self, k) for k in ("verified", "accepted", "accepted_as_group", "pending_expired",
                                              "groups_contradicted", "groups_out_of_context", "unique_by_path",
-                                             "groups_by_path", "global_searches", "corroborated", "reseeks")}
+                                             "groups_by_path", "left_to_their_place", "global_searches",
+                                             "corroborated", "reseeks")}
         return d
