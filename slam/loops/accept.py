@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from core import geometry as G
+from slam.graph.connectivity import component_labels
 from slam.keyframes import Keyframe
 
 from .candidates import vouches
@@ -231,20 +232,14 @@ class Acceptance:
         olds = sorted({lc.i for lc in group})
         if len(olds) < 2:
             return group
-        pos, root = poses[:, :(2 if self.planar else 3), 3], {i: i for i in olds}
-
-        def find(i: int) -> int:
-            while root[i] != i:
-                i = root[i]
-            return i
-
-        for x, a in enumerate(olds):
-            for b in olds[x + 1:]:
-                if find(a) != find(b) and vouches(*self.uncertainty.chain_variance(a, b, pos), self.config, self.planar):
-                    root[find(b)] = find(a)
+        pos = poses[:, :(2 if self.planar else 3), 3]
+        tied = np.array([(x, y) for x in range(len(olds)) for y in range(x + 1, len(olds))
+                         if vouches(*self.uncertainty.chain_variance(olds[x], olds[y], pos), self.config, self.planar)],
+                        dtype=np.int64).reshape(-1, 2)
+        place = dict(zip(olds, component_labels(len(olds), tied[:, 0], tied[:, 1])))
         parts: dict[int, list[LoopClosure]] = {}
         for lc in group:
-            parts.setdefault(find(lc.i), []).append(lc)
+            parts.setdefault(int(place[lc.i]), []).append(lc)
         part = max(parts.values(), key=lambda p: (len({lc.j for lc in p}), len(p)))
         self.stats.left_to_their_place += len(group) - len(part)
         return part

@@ -11,7 +11,7 @@ is keyframe *j*'s sensor frame in keyframe *i*'s. Covariances are in the tangent
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import Enum
 
 import numpy as np
@@ -137,8 +137,5 @@ class LoopStats:
         d: dict = {"candidates": sum(self.candidates.values())}
         d |= {f"candidates_{s.value}": self.candidates[s] for s in Source}
         d |= {r.value: self.rejections[r] for r in Rejection}
-        d |= {k: getattr(self, k) for k in ("verified", "accepted", "accepted_as_group", "pending_expired",
-                                             "groups_contradicted", "groups_out_of_context", "unique_by_path",
-                                             "groups_by_path", "left_to_their_place", "global_searches",
-                                             "corroborated", "reseeks")}
+        d |= {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("candidates", "rejections")}
         return d
