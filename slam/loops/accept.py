@@ -299,39 +299,43 @@ class Acceptance:
         given, replaces the old keyframes'), rotation variance carried to translation over the closures'
         lever arm."""
         pos = poses[:, :(2 if self.planar else 3), 3]
-        return self._cycle(a, b, G.relative(poses[a.i], poses[b.i]), G.relative(poses[b.j], poses[a.j]),
-                           self.uncertainty.chain_variance(a.i, b.i, pos) if old_variance is None else old_variance,
-                           self.uncertainty.chain_variance(a.j, b.j, pos))
+        var_old = self.uncertainty.chain_variance(a.i, b.i, pos) if old_variance is None else old_variance
+        return bool(self._cycles([a], [b], poses, np.array([var_old]),
+                                 np.array([self.uncertainty.chain_variance(a.j, b.j, pos)]))[0])
 
-    def _cycle(self, a: LoopClosure, b: LoopClosure, rel_old: Array, rel_new: Array,
-               var_old: tuple[float, float], var_new: tuple[float, float]) -> bool:
-        """:meth:`consistent` given the graph's relative poses X_ia⁻¹ X_ib and X_jb⁻¹ X_ja and the two chain
-        variances."""
-        E = G.inverse(a.measurement) @ rel_old @ b.measurement @ rel_new
+    def _cycles(self, a: list[LoopClosure], b: list[LoopClosure], poses: Array, var_old: Array,
+                var_new: Array) -> NDArray[np.bool_]:
+        """:meth:`consistent` of each pair ``(a[k], b[k])``, given the ``(n, 2)`` chain variances between their
+        old and between their new keyframes; one stacked computation for the whole list."""
+        Za, Zb = np.array([lc.measurement for lc in a]), np.array([lc.measurement for lc in b])
+        Ca, Cb = np.array([lc.covariance for lc in a]), np.array([lc.covariance for lc in b])
+        ia, ib, ja, jb = (np.array([getattr(lc, k) for lc in side]) for side, k in ((a, "i"), (b, "i"), (a, "j"), (b, "j")))
+        E = G.inverse(Za) @ G.relative(poses[ia], poses[ib]) @ Zb @ G.relative(poses[jb], poses[ja])
         e = G.se2_log(E) if self.planar else G.se3_log(E)
         d = 2 if self.planar else 3
-        (ti, ri), (tj, rj) = var_old, var_new
-        var_r = ri + rj + np.trace(a.covariance[d:, d:]) + np.trace(b.covariance[d:, d:])
-        lever2 = float(np.sum(a.measurement[:d, 3] ** 2) + np.sum(b.measurement[:d, 3] ** 2))
-        var_t = ti + tj + np.trace(a.covariance[:d, :d]) + np.trace(b.covariance[:d, :d]) + var_r * lever2
-        m2 = float(e[:d] @ e[:d]) / (var_t / d) + float(e[d:] @ e[d:]) / (var_r / (self.dof - d))
+        (ti, ri), (tj, rj) = var_old.T, var_new.T
+        (ta, ra), (tb, rb) = ((np.trace(C[:, :d, :d], axis1=1, axis2=2), np.trace(C[:, d:, d:], axis1=1, axis2=2)) for C in (Ca, Cb))
+        var_r = ri + rj + ra + rb
+        lever2 = np.sum(Za[:, :d, 3] ** 2, axis=1) + np.sum(Zb[:, :d, 3] ** 2, axis=1)
+        var_t = ti + tj + ta + tb + var_r * lever2
+        m2 = np.sum(e[:, :d] ** 2, axis=1) / (var_t / d) + np.sum(e[:, d:] ** 2, axis=1) / (var_r / (self.dof - d))
         return m2 <= self.gate
 
     def _consistency(self, closures: list[LoopClosure], poses: Array) -> NDArray[np.bool_]:
         """The ``(n, n)`` matrix of :meth:`consistent` over *closures*. A window's closures join a few new
-        keyframes to a few old ones, so the graph's relative poses and chain variances are computed once per
-        pair of keyframes, not once per pair of closures."""
+        keyframes to a few old ones, so the chain variances are computed once per pair of keyframes, not
+        once per pair of closures."""
         n = len(closures)
-        pos = poses[:, :(2 if self.planar else 3), 3]
-        rel_of = functools.cache(lambda u, v: G.relative(poses[u], poses[v]))
-        var_of = functools.cache(lambda u, v: self.uncertainty.chain_variance(u, v, pos))
         ok = np.eye(n, dtype=bool)
-        for x in range(n):
-            a = closures[x]
-            for y in range(x + 1, n):
-                b = closures[y]
-                ok[x, y] = ok[y, x] = self._cycle(a, b, rel_of(a.i, b.i), rel_of(b.j, a.j), var_of(a.i, b.i),
-                                                  var_of(a.j, b.j))
+        if n < 2:
+            return ok
+        pos = poses[:, :(2 if self.planar else 3), 3]
+        var_of = functools.cache(lambda u, v: self.uncertainty.chain_variance(u, v, pos))
+        x, y = np.triu_indices(n, 1)
+        a, b = [closures[k] for k in x], [closures[k] for k in y]
+        var_old = np.array([var_of(p.i, q.i) for p, q in zip(a, b)])
+        var_new = np.array([var_of(p.j, q.j) for p, q in zip(a, b)])
+        ok[x, y] = ok[y, x] = self._cycles(a, b, poses, var_old, var_new)
         return ok
 
     def _max_consistent_set(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
