@@ -321,21 +321,21 @@ class Acceptance:
         m2 = np.sum(e[:, :d] ** 2, axis=1) / (var_t / d) + np.sum(e[:, d:] ** 2, axis=1) / (var_r / (self.dof - d))
         return m2 <= self.gate
 
-    def _consistency(self, closures: list[LoopClosure], poses: Array) -> NDArray[np.bool_]:
-        """The ``(n, n)`` matrix of :meth:`consistent` over *closures*. A window's closures join a few new
-        keyframes to a few old ones, so the chain variances are computed once per pair of keyframes, not
-        once per pair of closures."""
-        n = len(closures)
-        ok = np.eye(n, dtype=bool)
-        if n < 2:
-            return ok
+    def _consistent_pairs(self, pairs: list[tuple[LoopClosure, LoopClosure]], poses: Array) -> NDArray[np.bool_]:
+        """:meth:`consistent` of each pair. A window's closures join a few new keyframes to a few old ones, so the
+        chain variances are computed once per pair of keyframes, not once per pair of closures."""
         pos = poses[:, :(2 if self.planar else 3), 3]
         var_of = functools.cache(lambda u, v: self.uncertainty.chain_variance(u, v, pos))
-        x, y = np.triu_indices(n, 1)
-        a, b = [closures[k] for k in x], [closures[k] for k in y]
-        var_old = np.array([var_of(p.i, q.i) for p, q in zip(a, b)])
-        var_new = np.array([var_of(p.j, q.j) for p, q in zip(a, b)])
-        ok[x, y] = ok[y, x] = self._cycles(a, b, poses, var_old, var_new)
+        return self._cycles([a for a, _ in pairs], [b for _, b in pairs], poses,
+                            np.array([var_of(a.i, b.i) for a, b in pairs]), np.array([var_of(a.j, b.j) for a, b in pairs]))
+
+    def _consistency(self, closures: list[LoopClosure], poses: Array) -> NDArray[np.bool_]:
+        """The ``(n, n)`` matrix of :meth:`consistent` over *closures*."""
+        n = len(closures)
+        ok = np.eye(n, dtype=bool)
+        if n > 1:
+            x, y = np.triu_indices(n, 1)
+            ok[x, y] = ok[y, x] = self._consistent_pairs([(closures[p], closures[q]) for p, q in zip(x, y)], poses)
         return ok
 
     def _max_consistent_set(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
@@ -373,8 +373,8 @@ class Acceptance:
         the group window of a member's) disagrees with a member: the estimate was right there, and the
         group is an alias (a door along a corridor whose doors repeat)."""
         W = self.config.group_window_keyframes
-        return any(abs(r.i - a.i) <= W and abs(r.j - a.j) <= W and not self.consistent(a, r, poses)
-                   for a in group for r in self.recent)
+        pairs = [(a, r) for a in group for r in self.recent if abs(r.i - a.i) <= W and abs(r.j - a.j) <= W]
+        return bool(pairs) and not bool(np.all(self._consistent_pairs(pairs, poses)))
 
     def relocalises(self, group: list[LoopClosure], poses: Array) -> bool:
         """Whether the accepted *group* says the estimate is off by more than a robust kernel lets a
