@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .geometry import matrix_to_xytheta, quat_to_rotation, rotation_to_quat, xytheta_to_matrix
+from .geometry import quat_to_rotation, rotation_to_quat, xytheta_to_matrix
 
 Array = NDArray[np.float64]
 
@@ -58,8 +58,8 @@ def to_gtsam_pose2(T: ArrayLike):
     """4×4 planar pose → ``gtsam.Pose2``."""
     import gtsam
 
-    x, y, th = matrix_to_xytheta(T)
-    return gtsam.Pose2(float(x), float(y), float(th))
+    T = np.asarray(T, dtype=float)  # one pose: scalars, not matrix_to_xytheta's stack (called per graph node)
+    return gtsam.Pose2(float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0])))
 
 
 def from_gtsam_pose2(p) -> Array:
