@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .kernels import PointGrid, cached_nearest, nearest_within, normals_2d
-from .kernels_correlative import branch_and_bound, score_candidates
+from .kernels_correlative import branch_and_bound, rotated_cells, score_candidates
 from .kernels_icp import plane_icp_2d
 from .kernels_grid3d import VoxelGrid3D, normals_3d, voxel_first_3d
 from .kernels_icp3d import plane_icp_3d
@@ -24,6 +24,7 @@ def compile_all() -> None:
     normals_2d(np.arange(len(pts)), normals, have, g.points, *g.args(), 3)
     plane_icp_2d(pts.copy(), np.eye(2), np.zeros(2), np.array([0.5]), 2, 1e-4, 1e-4, 2, 0.1, 3,
                  normals, have, 3, g.points, *g.args())
+    rotated_cells(pts, np.ones(2), np.zeros(2), 0.0, 0.0, -1.0, -1.0, 0.05)
     score_candidates(np.zeros((4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), np.zeros(1, np.int64),
                      np.zeros((1, 2), np.int64))
     for dim in (2, 3):

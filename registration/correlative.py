@@ -156,9 +156,10 @@ def _scan_at(scan_points: Array, pyramid: LikelihoodPyramid, pose: Array, what: 
 
 def _cells(pts: Array, pyramid: LikelihoodPyramid, x0: float, y0: float, thetas: Array) -> NDArray[np.int32]:
     """Cells ``(R, N, 2)`` of the scan points *pts* ``(N, 2)`` turned by each of the R *thetas* and moved to (x0, y0)."""
-    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
-    rotated = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
-    return pyramid.cells(rotated).astype(np.int32)  # int32 halves the gathers' index traffic
+    # Cosines and sines from numpy (numba's may differ in the last bit), the rest compiled; int32 halves the
+    # gathers' index traffic.
+    return kernels.rotated_cells(np.ascontiguousarray(pts), np.cos(thetas), np.sin(thetas), float(x0), float(y0),
+                                 float(pyramid.origin[0]), float(pyramid.origin[1]), pyramid.resolution)
 
 
 def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,

@@ -7,7 +7,24 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["score_candidates", "branch_and_bound"]
+__all__ = ["rotated_cells", "score_candidates", "branch_and_bound"]
+
+
+@njit(cache=True)
+def rotated_cells(pts, cos_t, sin_t, x0, y0, origin_x, origin_y, resolution):  # pragma: no cover - compiled
+    """Cells ``(R, N, 2)`` (int32) of the points *pts* ``(N, 2)`` turned by each of R headings (their cosines and
+    sines) and moved to (*x0*, *y0*), on a grid whose cell (0, 0) starts at the origin: the same arithmetic,
+    in the same order, as :func:`registration.correlative._cells`' numpy form, without its temporaries."""
+    R, N = cos_t.shape[0], pts.shape[0]
+    out = np.empty((R, N, 2), np.int32)
+    for r in range(R):
+        c, s = cos_t[r], sin_t[r]
+        for p in range(N):
+            x = c * pts[p, 0] - s * pts[p, 1] + x0
+            y = s * pts[p, 0] + c * pts[p, 1] + y0
+            out[r, p, 0] = np.int32(np.floor((x - origin_x) / resolution))
+            out[r, p, 1] = np.int32(np.floor((y - origin_y) / resolution))
+    return out
 
 
 @njit(cache=True, inline="always")

@@ -64,6 +64,23 @@ def brute_force(scan, pyr, guess, window_m, window_rad):
     return best
 
 
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n_headings=st.integers(1, 40), resolution=st.sampled_from([0.03, 0.05, 0.1]))
+def test_compiled_cells_of_turned_scans_equal_the_numpy_formula(seed, n_headings, resolution):
+    """The search's cells of the scan at every heading: the compiled loop does the numpy arithmetic in the same
+    order, so every index is the same integer. A wrong axis, sign or offset fails here; a last-bit difference
+    (a cell off by one on a boundary) is what the replayed runs' trajectory hashes catch."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-25, 25, (int(rng.integers(3, 300)), 2))
+    pyr = C.LikelihoodPyramid(rng.uniform(-20, 20, (80, 2)), resolution, resolution, levels=2)
+    thetas, (x0, y0) = rng.uniform(-np.pi, np.pi, n_headings), rng.uniform(-5, 5, 2)
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    turned = np.stack([c * pts[:, 0] - s * pts[:, 1] + x0, s * pts[:, 0] + c * pts[:, 1] + y0], axis=-1)
+    expected = np.floor((turned - pyr.origin) / pyr.resolution).astype(np.int64)
+    got = C._cells(pts, pyr, x0, y0, thetas)
+    assert got.dtype == np.int32 and np.array_equal(got.astype(np.int64), expected)
+
+
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10_000), levels=st.integers(0, 5))
 def test_branch_and_bound_finds_the_brute_force_maximum(seed, levels):
