@@ -545,7 +545,7 @@ def test_a_return_to_two_passes_the_graph_misplaced_gives_a_group_against_each()
     second = _closures(truth, zip(range(20, 23), range(30, 33)), rng)
     acc = _acceptance(step_cov=1e-4)
     assert not C.vouches(*acc.uncertainty.chain_variance(0, 20, est[:, :2, 3]), LoopConfig(), True)
-    assert not acc.consistent(to_closure(first[0], _keyframes(60), True), to_closure(second[0], _keyframes(60), True), est)
+    assert not acc.pairwise.consistent(to_closure(first[0], _keyframes(60), True), to_closure(second[0], _keyframes(60), True), est)
     for v in first + second:
         acc.consider(v, _keyframes(60), _line(60), lambda v: True)
     group = acc.decide(30 + W - 1, est)
@@ -581,7 +581,7 @@ def test_closures_against_a_place_the_chain_cannot_compare_count_in_their_own_gr
     assert C.vouches(*ru.chain_variance(0, 4, pos), LoopConfig(), True)
     assert not C.vouches(*ru.chain_variance(0, 20, pos), LoopConfig(), True)
     kfs = _keyframes(60)
-    assert all(acc.consistent(to_closure(a, kfs, True), to_closure(b, kfs, True), truth) for a in right for b in wrong)
+    assert all(acc.pairwise.consistent(to_closure(a, kfs, True), to_closure(b, kfs, True), truth) for a in right for b in wrong)
     for v in right + wrong:
         acc.consider(v, kfs, _line(60), lambda v: True)
     group = acc.decide(30 + W - 1, truth)
@@ -632,9 +632,9 @@ def test_the_maximum_consistent_set_is_the_maximum_clique():
         adj = adj | adj.T
         closures = [LoopClosure(0, 100 + k, np.eye(4), np.eye(3), 1.0, 0.0, "spatial") for k in range(n)]
         index = {id(c): k for k, c in enumerate(closures)}
-        acc._consistency = lambda cs, P, _adj=adj, _ix=index: np.array(  # type: ignore[method-assign]
+        acc.pairwise.matrix = lambda cs, P, _adj=adj, _ix=index: np.array(  # type: ignore[method-assign]
             [[a is b or bool(_adj[_ix[id(a)], _ix[id(b)]]) for b in cs] for a in cs])
-        got = acc._max_consistent_set(closures, np.zeros((1, 4, 4)))
+        got = acc.pairwise.largest_set(closures, np.zeros((1, 4, 4)))
         best = max(len(s) for r in range(1, n + 1) for s in itertools.combinations(range(n), r)
                    if all(adj[a, b] for a, b in itertools.combinations(s, 2)))
         members = [index[id(c)] for c in got]
@@ -644,7 +644,7 @@ def test_the_maximum_consistent_set_is_the_maximum_clique():
 
 def test_the_consistency_matrix_is_the_pairwise_test():
     """The matrix the clique search reads (relative poses and chain variances computed once per keyframe pair)
-    holds exactly what :meth:`Acceptance.consistent` says of each pair: closures from a few new keyframes to a
+    holds exactly what :meth:`PairwiseConsistency.consistent` says of each pair: closures from a few new keyframes to a
     few old ones, with random offsets some of which break the cycle."""
     rng = np.random.default_rng(3)
     acc = _acceptance(K=60, step_cov=1e-4)
@@ -654,8 +654,8 @@ def test_the_consistency_matrix_is_the_pairwise_test():
         i, j = int(rng.integers(0, 6)), int(rng.integers(50, 55))
         T = G.relative(poses[i], poses[j]) @ G.se2_exp(rng.normal(0.0, [0.05, 0.05, 0.01]) * rng.choice([1.0, 20.0]))
         closures.append(LoopClosure(i, j, T, np.diag([1e-4, 1e-4, 1e-5]), 1.0, 0.0, "spatial"))
-    ok = acc._consistency(closures, poses)
-    pairwise = np.array([[a is b or acc.consistent(a, b, poses) for b in closures] for a in closures])
+    ok = acc.pairwise.matrix(closures, poses)
+    pairwise = np.array([[a is b or acc.pairwise.consistent(a, b, poses) for b in closures] for a in closures])
     assert np.array_equal(ok, pairwise) and 0 < ok.sum() < ok.size
 
 

@@ -13,7 +13,7 @@
   as many keyframes, are pairwise consistent — each pair's cycle through the estimate's short stretches
   between their old and between their new keyframes passes the same χ² gate (pairwise consistent
   measurement set maximisation, PCM: Mangelson, Dominic, Eustice & Vasudevan, ICRA 2018; the maximum
-  clique is exact here), at one old place (:meth:`Acceptance._one_place`) — and no closure
+  clique is exact here; :mod:`slam.loops.pairwise`), at one old place (:meth:`Acceptance._one_place`) — and no closure
   accepted on its own between the same stretches disagrees with them. A group is decided once the
   window of ``group_window_keyframes`` after its first member has passed, so the evidence against it
   that arrives in that window (a closure accepted where the estimate was) is seen. The window's other
@@ -31,7 +31,6 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -45,6 +44,7 @@ from slam.keyframes import Keyframe
 
 from .candidates import vouches
 from .config import LoopConfig
+from .pairwise import PairwiseConsistency
 from .types import LoopClosure, LoopStats, Rejection, Verified, Window
 from .uncertainty import RelativeUncertainty
 
@@ -99,6 +99,7 @@ class Acceptance:
         self.uncertainty = uncertainty
         self.stats = stats
         self.gate = float(chi2.ppf(config.consistency_probability, self.dof))
+        self.pairwise = PairwiseConsistency(uncertainty, planar, self.gate)
         self.pending: list[Pending] = []
         self.recent: list[LoopClosure] = []  # accepted on their own, within the group window
         self.beyond: list[tuple[LoopClosure, int]] = []  # global matches beyond the gate (closure, map half)
@@ -183,7 +184,7 @@ class Acceptance:
         accepted: list[LoopClosure] = []
         left = closures
         while left:
-            group = self._one_place(self._max_consistent_set(left, poses), poses)
+            group = self._one_place(self.pairwise.largest_set(left, poses), poses)
             if len({lc.j for lc in group}) < self.config.group_min_size:
                 break
             others = self._other_places(left, group, poses)
@@ -215,7 +216,7 @@ class Acceptance:
         if self.fit is None:
             return group
         out = {id(lc) for lc in others} | {id(lc) for lc in group}
-        rival = self._max_consistent_set([lc for lc in closures if id(lc) not in out], poses)
+        rival = self.pairwise.largest_set([lc for lc in closures if id(lc) not in out], poses)
         if len({lc.j for lc in rival}) < self.config.group_min_size:
             return group
         mine, theirs = self.fit(group, poses), self.fit(rival, poses)
@@ -284,89 +285,11 @@ class Acceptance:
                 continue  # the same old structure: one piece of evidence, not two
             graph = self.uncertainty.from_node(b.i, pos)
             old = (float(graph.position_var[lc.i]), float(graph.rotation_var[lc.i]))
-            if vouches(*old, self.config, self.planar) and self.consistent(lc, b, poses, old):
+            if vouches(*old, self.config, self.planar) and self.pairwise.consistent(lc, b, poses, old):
                 agree = True
                 break
         self.beyond.append((lc, half))
         return agree
-
-    # ------------------------------------------------------------------ pairwise consistency
-    def consistent(self, a: LoopClosure, b: LoopClosure, poses: Array,
-                   old_variance: tuple[float, float] | None = None) -> bool:
-        """PCM's pairwise test: the cycle Z_a⁻¹ (X_ia⁻¹ X_ib) Z_b (X_jb⁻¹ X_ja) is within the χ² gate of the
-        identity, under both closures' covariances and the chain variances between their old and
-        between their new keyframes (:meth:`RelativeUncertainty.chain_variance`; *old_variance*, when
-        given, replaces the old keyframes'), rotation variance carried to translation over the closures'
-        lever arm."""
-        pos = poses[:, :(2 if self.planar else 3), 3]
-        var_old = self.uncertainty.chain_variance(a.i, b.i, pos) if old_variance is None else old_variance
-        return bool(self._cycles([a], [b], poses, np.array([var_old]),
-                                 np.array([self.uncertainty.chain_variance(a.j, b.j, pos)]))[0])
-
-    def _cycles(self, a: list[LoopClosure], b: list[LoopClosure], poses: Array, var_old: Array,
-                var_new: Array) -> NDArray[np.bool_]:
-        """:meth:`consistent` of each pair ``(a[k], b[k])``, given the ``(n, 2)`` chain variances between their
-        old and between their new keyframes; one stacked computation for the whole list."""
-        Za, Zb = np.array([lc.measurement for lc in a]), np.array([lc.measurement for lc in b])
-        Ca, Cb = np.array([lc.covariance for lc in a]), np.array([lc.covariance for lc in b])
-        ia, ib, ja, jb = (np.array([getattr(lc, k) for lc in side]) for side, k in ((a, "i"), (b, "i"), (a, "j"), (b, "j")))
-        E = G.inverse(Za) @ G.relative(poses[ia], poses[ib]) @ Zb @ G.relative(poses[jb], poses[ja])
-        e = G.se2_log(E) if self.planar else G.se3_log(E)
-        d = 2 if self.planar else 3
-        (ti, ri), (tj, rj) = var_old.T, var_new.T
-        (ta, ra), (tb, rb) = ((np.trace(C[:, :d, :d], axis1=1, axis2=2), np.trace(C[:, d:, d:], axis1=1, axis2=2)) for C in (Ca, Cb))
-        var_r = ri + rj + ra + rb
-        lever2 = np.sum(Za[:, :d, 3] ** 2, axis=1) + np.sum(Zb[:, :d, 3] ** 2, axis=1)
-        var_t = ti + tj + ta + tb + var_r * lever2
-        m2 = np.sum(e[:, :d] ** 2, axis=1) / (var_t / d) + np.sum(e[:, d:] ** 2, axis=1) / (var_r / (self.dof - d))
-        return m2 <= self.gate
-
-    def _consistent_pairs(self, pairs: list[tuple[LoopClosure, LoopClosure]], poses: Array) -> NDArray[np.bool_]:
-        """:meth:`consistent` of each pair. A window's closures join a few new keyframes to a few old ones, so the
-        chain variances are computed once per pair of keyframes, not once per pair of closures."""
-        pos = poses[:, :(2 if self.planar else 3), 3]
-        var_of = functools.cache(lambda u, v: self.uncertainty.chain_variance(u, v, pos))
-        return self._cycles([a for a, _ in pairs], [b for _, b in pairs], poses,
-                            np.array([var_of(a.i, b.i) for a, b in pairs]), np.array([var_of(a.j, b.j) for a, b in pairs]))
-
-    def _consistency(self, closures: list[LoopClosure], poses: Array) -> NDArray[np.bool_]:
-        """The ``(n, n)`` matrix of :meth:`consistent` over *closures*."""
-        n = len(closures)
-        ok = np.eye(n, dtype=bool)
-        if n > 1:
-            x, y = np.triu_indices(n, 1)
-            ok[x, y] = ok[y, x] = self._consistent_pairs([(closures[p], closures[q]) for p, q in zip(x, y)], poses)
-        return ok
-
-    def _max_consistent_set(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
-        """The largest pairwise-consistent subset (maximum clique of the consistency graph, Bron–Kerbosch
-        with pivoting); ties go to the subset with most distinct new keyframes."""
-        n = len(closures)
-        if n == 0:
-            return []
-        ok = self._consistency(closures, poses)
-        nbrs = [set(np.flatnonzero(ok[a]).tolist()) - {a} for a in range(n)]
-        best: list[int] = []
-
-        def key(members: list[int]) -> tuple[int, int]:
-            return len({closures[m].j for m in members}), len(members)
-
-        def expand(r: set[int], p: set[int], x: set[int]) -> None:
-            nonlocal best
-            if not p and not x:
-                if key(sorted(r)) > key(best):
-                    best = sorted(r)
-                return
-            if len(r) + len(p) <= len(best) and len({closures[m].j for m in r | p}) <= key(best)[0]:
-                return  # cannot beat the best
-            pivot = max(p | x, key=lambda u: len(nbrs[u] & p))
-            for v in list(p - nbrs[pivot]):
-                expand(r | {v}, p & nbrs[v], x & nbrs[v])
-                p.remove(v)
-                x.add(v)
-
-        expand(set(), set(range(n)), set())
-        return [closures[m] for m in best]
 
     def _contradicted(self, group: list[LoopClosure], poses: Array) -> bool:
         """Whether a closure accepted on its own between the same stretches of old and new keyframes (within
@@ -374,7 +297,7 @@ class Acceptance:
         group is an alias (a door along a corridor whose doors repeat)."""
         W = self.config.group_window_keyframes
         pairs = [(a, r) for a in group for r in self.recent if abs(r.i - a.i) <= W and abs(r.j - a.j) <= W]
-        return bool(pairs) and not bool(np.all(self._consistent_pairs(pairs, poses)))
+        return bool(pairs) and not bool(np.all(self.pairwise.of_pairs(pairs, poses)))
 
     def relocalises(self, group: list[LoopClosure], poses: Array) -> bool:
         """Whether the accepted *group* says the estimate is off by more than a robust kernel lets a
