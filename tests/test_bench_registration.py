@@ -88,3 +88,35 @@ def test_without_small_gicp_its_keys_are_null(monkeypatch, rng):
     for d in (keys, p2pl):
         assert d and all(v is None for v in d.values())
         assert "null" in json.dumps(d) and "NaN" not in json.dumps(d)
+
+
+def test_the_official_kitti_poses_of_sequence_00_are_the_placeholder(shared):
+    """kitti_mini's second reference read in the Velodyne frame: sequence 00's official poses over these frames
+    are KITTI's constant-velocity placeholder (SOURCE.md: a constant 0.860 m step, the same small turn each
+    time), while the scans' own reference, SemanticKITTI's, accelerates from 0.67 to 0.81 m."""
+    bench = _bench()
+    seq = shared("kitti_mini", "sequences", "00")
+    official = bench._official_kitti_poses(seq)
+    steps = [geo.relative(official[k], official[k + 1]) for k in range(9)]
+    lengths = [float(np.linalg.norm(S[:3, 3])) for S in steps]
+    assert all(abs(m - 0.860) < 0.002 for m in lengths)
+    turns = [float(np.degrees(np.linalg.norm(geo.so3_log(S[:3, :3])))) for S in steps]
+    assert max(turns) - min(turns) < 0.001  # one rotation repeated: a constant-velocity extrapolation
+    from slam.logs import open_log
+
+    gt = np.array([f.ground_truth for f in open_log(seq).frames()])
+    real = [float(np.linalg.norm(geo.relative(gt[k], gt[k + 1])[:3, 3])) for k in range(9)]
+    assert real[0] < 0.70 and real[-1] > 0.78
+
+
+def test_reference_keys_leave_out_the_placeholder_and_take_the_largest():
+    """The summary's reference keys: the largest disagreement and the largest error against the official
+    poses over the sequences whose official poses are real; 00 (the placeholder) left out; none without
+    the second reference."""
+    bench = _bench()
+    rec = lambda seq, d, o: {"sequence": seq, "references_disagree_m": d, "references_disagree_deg": d,  # noqa: E731
+                             "official_err_m": o, "official_err_deg": o}
+    keys = bench._reference_keys([rec("00", 0.19, 0.18), rec("01", 0.048, 0.05), rec("10", 0.04, 0.055)])
+    assert keys["kitti_mini_references_max_disagreement_m"] == 0.048
+    assert keys["kitti_mini_p2plane_max_step_err_vs_official_m"] == 0.055
+    assert bench._reference_keys([{"sequence": "01", "err_m": 0.01}]) == {}
