@@ -261,6 +261,29 @@ def test_a_global_match_is_held_pending_only_within_its_chi2_gate_of_the_estimat
     assert c.max_mahalanobis2 == pytest.approx(gate)
 
 
+def test_a_descriptor_match_the_estimate_cannot_vouch_for_is_held_to_the_global_gate():
+    """A descriptor picks a place by its looks, as the global search does: where the estimate cannot vouch for
+    the pair, its match goes on to the group stage only within the same χ² gate of the estimate (an alias at a
+    place that looks alike, 27 m from an estimate right to 2 m, was 8.9 σ out and still inside the
+    three-window box); where the estimate vouches, its own consistency gate decides as before."""
+    gate = chi2.ppf(C.GLOBAL_PLAUSIBLE_PROBABILITY, 3)
+    poses, unc = _scene()
+    far, near = C.descriptor([(20, 0.0), (60, 0.0)], _keyframes(100), poses, 99, unc, LoopConfig(), True, 10.0, 0.1)
+    assert not far.vouched and far.max_mahalanobis2 == pytest.approx(gate)
+    assert far.corroborated_mahalanobis2 == pytest.approx(chi2.ppf(C.GLOBAL_CORROBORATED_PROBABILITY, 3))
+    assert near.vouched and near.max_mahalanobis2 is None and near.corroborated_mahalanobis2 is None
+    est, est_cov = far.estimate
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    s = np.sqrt(est_cov[0, 0] + cov[0, 0])
+    for factor, kept in ((0.98, True), (1.02, False)):
+        T = est @ G.se2_exp([factor * s * np.sqrt(gate), 0.0, 0.0])
+        assert mahalanobis2(est, est_cov, T, cov, True) == pytest.approx(factor**2 * gate, rel=1e-3)
+        acc = _acceptance()
+        assert acc.consider(Verified(far, T, cov, 0.9, 0.02, 0.8, 3), _keyframes(100), poses, lambda v: True) is None
+        assert len(acc.pending) == int(kept)
+        assert acc.stats.rejections[Rejection.INCONSISTENT] == int(not kept)
+
+
 def _drifted_return(K: int = 300):
     """Truth: 0–99 an old pass along x (0.5 m apart), 200–299 its revisit 0.2 m beside it. The estimate puts the
     revisit 2 m / 1 m off and turned by 3° (a heading drift the covariance did not know)."""

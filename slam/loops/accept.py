@@ -19,8 +19,9 @@
   that arrives in that window (a closure accepted where the estimate was) is seen. The window's other
   old places (old keyframes the graph cannot tie to the group's) get a group of their own, decided alike;
   of two rival sets at one place, the one whose recent path fits the old place better stands (``fit``).
-* A global match beyond its χ² gate of the estimate (``Candidate.max_mahalanobis2``) is rejected unless it is
-  *corroborated*: an earlier global match beyond the gate, against a place whose local map shares no
+* A global match — or a descriptor's the estimate cannot vouch for — beyond its χ² gate of the estimate
+  (``Candidate.max_mahalanobis2``) is rejected unless it is
+  *corroborated*: an earlier such match beyond the gate, against a place whose local map shares no
   keyframe with its own, agrees with it (the same pairwise test) while the odometry between the two new
   keyframes and the graph between the two places are sure enough to vouch for the comparison, and both
   lie within the looser ``Candidate.corroborated_mahalanobis2``. Then it waits for a group like any

@@ -203,16 +203,24 @@ def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: 
     heading (about the sensor's z axis, also in 3D), searched over ± half the overlap radius and ± two
     sectors; vouched like a spatial candidate when the estimate is sure of the pair; plausible only within
     three of the estimate's own search windows when the place is within spatial reach (a symmetric
-    corridor looks the same turned round)."""
+    corridor looks the same turned round). Where the estimate cannot vouch, the match is held to it as a
+    global one is (``GLOBAL_PLAUSIBLE_PROBABILITY``, or ``GLOBAL_CORROBORATED_PROBABILITY`` with an
+    independent match that agrees): a place picked by its looks is the same evidence whichever search
+    found it, and the three-window box alone let an alias 8.9 σ from an estimate right to 0.7 σ carry a
+    group (docs/LOOP_CLOSURE.md, "A place picked by its looks")."""
     win_xy, win_th, _ = windows(uncertainty, config, planar)
+    gate, corroborated = float(chi2.ppf(GLOBAL_PLAUSIBLE_PROBABILITY, 3)), float(chi2.ppf(GLOBAL_CORROBORATED_PROBABILITY, 3))
     out = []
     for i, yaw in hits:
         est = sensor_relative(keyframes, poses, i, j)
         w = Window(max(config.window_floor_m, 0.5 * radius_m), 2.0 * sector_rad)
         within = win_xy[i] <= config.max_window_m
+        vouched = _vouched(win_xy[i], win_th[i], config)
         out.append(Candidate(i, j, Source.DESCRIPTOR, G.xytheta_to_matrix(0.0, 0.0, yaw), w,
-                             (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config),
-                             plausible=_plausible(win_xy[i], win_th[i]) if within else None))
+                             (est, uncertainty.covariance(i, planar)), vouched,
+                             plausible=_plausible(win_xy[i], win_th[i]) if within else None,
+                             max_mahalanobis2=None if vouched else gate,
+                             corroborated_mahalanobis2=None if vouched else corroborated))
     return out
 
 

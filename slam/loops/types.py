@@ -67,7 +67,8 @@ class Candidate:
             search windows of the estimate), or None when the place is beyond any spatial window (then
             groups alone decide).
         max_mahalanobis2: the largest squared Mahalanobis distance from ``estimate`` at which a closure is
-            plausible at all, for a search the estimate's covariance does not bound (the global one), or None.
+            plausible at all, for a search the estimate's covariance does not bound (the global one; a descriptor's
+            the estimate cannot vouch for), or None.
         corroborated_mahalanobis2: ... and the largest at which it is, when an independent match of the same
             kind beyond ``max_mahalanobis2`` agrees with it (:mod:`slam.loops.accept`), or None.
     """
