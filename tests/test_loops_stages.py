@@ -272,6 +272,8 @@ def test_a_descriptor_match_the_estimate_cannot_vouch_for_is_held_to_the_global_
     assert not far.vouched and far.max_mahalanobis2 == pytest.approx(gate)
     assert far.corroborated_mahalanobis2 == pytest.approx(chi2.ppf(C.GLOBAL_CORROBORATED_PROBABILITY, 3))
     assert near.vouched and near.max_mahalanobis2 is None and near.corroborated_mahalanobis2 is None
+    far3, _ = C.descriptor([(20, 0.0), (60, 0.0)], _keyframes(100, 3), poses, 99, unc, LoopConfig(), False, 10.0, 0.1)
+    assert far3.max_mahalanobis2 == pytest.approx(chi2.ppf(C.GLOBAL_PLAUSIBLE_PROBABILITY, 6))  # a 6-dof pose in 3D
     est, est_cov = far.estimate
     cov = np.diag([1e-4, 1e-4, 1e-5])
     s = np.sqrt(est_cov[0, 0] + cov[0, 0])

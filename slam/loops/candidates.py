@@ -209,7 +209,8 @@ def descriptor(hits: list[tuple[int, float]], keyframes: list[Keyframe], poses: 
     found it, and the three-window box alone let an alias 8.9 σ from an estimate right to 0.7 σ carry a
     group (docs/LOOP_CLOSURE.md, "A place picked by its looks")."""
     win_xy, win_th, _ = windows(uncertainty, config, planar)
-    gate, corroborated = float(chi2.ppf(GLOBAL_PLAUSIBLE_PROBABILITY, 3)), float(chi2.ppf(GLOBAL_CORROBORATED_PROBABILITY, 3))
+    dof = 3 if planar else 6
+    gate, corroborated = float(chi2.ppf(GLOBAL_PLAUSIBLE_PROBABILITY, dof)), float(chi2.ppf(GLOBAL_CORROBORATED_PROBABILITY, dof))
     out = []
     for i, yaw in hits:
         est = sensor_relative(keyframes, poses, i, j)
