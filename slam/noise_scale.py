@@ -8,6 +8,14 @@ innovation squared, as in innovation-based adaptive estimation (Mehra, "Approach
 filtering", IEEE TAC 17(5), 1972, §IV). The mean, not the median, of the statistic: errors are
 heavy-tailed, and the median fits scales that are too small.
 
+The trusted side's covariance may carry margins that are not its noise (the registration edge's floors,
+which make a scan match on real data no surer than it measurably is). Where those margins alone exceed
+the whole disagreement, the moment equation has no positive solution — a variance component estimated
+at ≤ 0 — and the fit would end at its lower bound, making the model far surer than it is (a fast laser
+and good wheels: the wheels 2.2–2.5 × surer than their true error, docs/LOOP_CLOSURE.md "The wheels'
+calibration at a fast laser"). That block is then fitted against the trusted side's own claim, without
+the margins, which measures the model's noise where the margins hid it.
+
 Used for the wheel-odometry model against the scan registration, one innovation per keyframe interval
 (:class:`slam.pipeline.frontend.FrontEnd`): robots' wheels agree with their scans up to ~7× better
 in heading on one robot than on another (docs/ODOMETRY.md), and one generic wheel model cannot say so.
@@ -45,18 +53,22 @@ class NoiseScaleCalibration:
         self._innovations: list[Array] = []
         self._fixed: list[Array] = []
         self._model: list[Array] = []
+        self._own: list[Array] = []
         self._since_fit = 0
 
     @property
     def samples(self) -> int:
         return len(self._innovations)
 
-    def add(self, innovation: Array, fixed_cov: Array, model_cov: Array) -> None:
-        """One innovation (tangent vector), the covariance of the trusted estimator and the
-        *uncalibrated* model covariance."""
+    def add(self, innovation: Array, fixed_cov: Array, model_cov: Array, fixed_own_cov: Array | None = None) -> None:
+        """One innovation (tangent vector), the covariance of the trusted estimator, the *uncalibrated*
+        model covariance and, when *fixed_cov* includes margins, the trusted estimator's own covariance
+        without them (the fit's fallback where the margins alone exceed the disagreement; default
+        *fixed_cov*)."""
         self._innovations.append(np.asarray(innovation, dtype=float))
         self._fixed.append(np.asarray(fixed_cov, dtype=float))
         self._model.append(np.asarray(model_cov, dtype=float))
+        self._own.append(self._fixed[-1] if fixed_own_cov is None else np.asarray(fixed_own_cov, dtype=float))
         self._since_fit += 1
         # Refit every `every` samples, and no more often than every 10 % of them (the estimate has settled).
         due = self._since_fit >= max(self.every, self.samples // 10)
@@ -75,8 +87,14 @@ class NoiseScaleCalibration:
         A = np.array(self._fixed)
         B = np.array(self._model)
         n = self.n_translation
-        self.scale_translation = self._solve(d[:, :n], A[:, :n, :n], B[:, :n, :n])
-        self.scale_rotation = self._solve(d[:, n:], A[:, n:, n:], B[:, n:, n:])
+        scales = []
+        for b in (slice(0, n), slice(n, None)):
+            k = self._solve(d[:, b], A[:, b, b], B[:, b, b])
+            if k <= self.bounds[0]:  # the margins alone exceed the disagreement: measure against the own claim
+                own = np.array(self._own)
+                k = self._solve(d[:, b], own[:, b, b], B[:, b, b])
+            scales.append(k)
+        self.scale_translation, self.scale_rotation = scales
 
     def _solve(self, d: Array, A: Array, B: Array) -> float:
         """k with mean dᵀ(A + k²B)⁻¹d = dim, by bisection on log k (the mean falls as k grows)."""

@@ -77,7 +77,7 @@ def test_a_wheel_edge_that_fails_the_gate_is_dropped_only_where_the_wheels_were_
     prev, kf = _keyframe_pair(0.2)
     edge = OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-6]))
     fe._lumpy_since_kf = lumpy
-    wheel, agree = fe._wheel_edge(prev, kf, edge, edge.covariance)
+    wheel, agree = fe._wheel_edge(prev, kf, edge, edge.covariance, edge.covariance)
     assert (wheel is None) is lumpy and not agree
     assert fe.wheel_edges_dropped == int(lumpy)
     if not lumpy:
@@ -96,7 +96,7 @@ def test_the_wheel_edge_carries_the_calibrated_model_once_enough_edges_agree():
         noise = rng.normal(0.0, [0.002, 0.002, 0.0005])
         prev, kf = _keyframe_pair(0.4)
         kf.frame.odom = G.xytheta_to_matrix(0.4 + noise[0], noise[1], noise[2])
-        wheel, agree = fe._wheel_edge(prev, kf, OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), Ce), Ce)
+        wheel, agree = fe._wheel_edge(prev, kf, OdometryEdge(0, 1, G.xytheta_to_matrix(0.4, 0.0, 0.0), Ce), Ce, Ce)
         assert agree
         covs.append((wheel.covariance, fe._wheel_covariance(wheel.measurement)))
     assert np.allclose(*covs[0])  # before min_edges: the model as configured
@@ -121,6 +121,28 @@ def test_wheel_calibration_recovers_the_scale_the_innovations_were_drawn_with(k_
         cal.add(rng.multivariate_normal(np.zeros(3), A + B * np.outer(s, s)), A, B)
     assert cal.scale_translation == pytest.approx(k_t, rel=0.08)
     assert cal.scale_rotation == pytest.approx(k_r, rel=0.08)
+
+
+@pytest.mark.parametrize("k_t, k_r", [(0.12, 0.1), (0.25, 0.2)])
+def test_wheel_calibration_measures_against_the_own_covariance_where_the_margins_hide_the_model(k_t, k_r):
+    """Innovations drawn from N(0, Σ_own + diag(k_t, k_t, k_r)² Σ_model), but the trusted side states Σ_own plus
+    a floor larger than the whole disagreement (a fast laser's registration with the edge floors): fitted
+    against the stated covariance both scales would end at the lower bound (the wheels 2–5 × surer than they
+    are); the fit falls back on Σ_own and returns k_t and k_r within 10 % (1500 samples)."""
+    rng = np.random.default_rng(3)
+    s = np.array([k_t, k_t, k_r])
+    cal, floored_only = NoiseScaleCalibration(2), NoiseScaleCalibration(2)
+    for _ in range(1500):
+        own = np.diag([rng.uniform(0.5, 2.0) * 1e-6] * 2 + [rng.uniform(0.5, 2.0) * 1e-8])
+        d_step = rng.uniform(0.2, 0.4)
+        B = np.diag([(0.1 * d_step) ** 2] * 2 + [(0.08 * d_step) ** 2])
+        floor = B * 0.5  # margins alone above the innovation's whole covariance (k² < 0.5)
+        d = rng.multivariate_normal(np.zeros(3), own + B * np.outer(s, s))
+        cal.add(d, own + floor, B, own)
+        floored_only.add(d, own + floor, B)
+    assert (floored_only.scale_translation, floored_only.scale_rotation) == (0.05, 0.05)
+    assert cal.scale_translation == pytest.approx(k_t, rel=0.1)
+    assert cal.scale_rotation == pytest.approx(k_r, rel=0.1)
 
 
 def test_wheel_calibration_waits_for_its_samples_and_stays_within_its_bounds():

@@ -200,10 +200,11 @@ class FrontEnd:
         return m2 <= float(chi2.ppf(p, self._dof))
 
     def _wheel_edge(self, prev: Keyframe, kf: Keyframe, edge: OdometryEdge,
-                    prior_cov: Array) -> tuple[WheelEdge | None, bool]:
+                    prior_cov: Array, own_cov: Array) -> tuple[WheelEdge | None, bool]:
         """The wheel edge over keyframes *prev* → *kf* (None when the gate leaves it out) and whether it passed
         the gate's test; *prior_cov* is the registration edge's covariance at the a-priori σ, floor included
-        (the gate's).
+        (the gate's), *own_cov* its a-posteriori covariance without the floor (the calibration's fallback,
+        :mod:`slam.noise_scale`).
 
         Left out when it fails the χ² test against the registration edge and the wheels were lumpy
         in the interval (``wheel_gate_lumpy_only``; the odometry took its constant-velocity start at
@@ -223,7 +224,7 @@ class FrontEnd:
             if self.wheel_calibration is None:
                 self.wheel_calibration = NoiseScaleCalibration(2 if self._dof == 3 else 3, c.wheel_calibration_min_edges)
             if consistent:
-                self.wheel_calibration.add(d, edge.covariance, model)
+                self.wheel_calibration.add(d, edge.covariance, model, own_cov)
             model = self.wheel_calibration.calibrated(model)
         return WheelEdge(prev.id, kf.id, wrel, model), consistent
 
@@ -265,7 +266,7 @@ class FrontEnd:
                 floor = self._floor(rel)
                 wheels = c.wheel_edges and prev.frame.odom is not None and frame.odom is not None
                 edge = OdometryEdge(prev.id, kf.id, rel, covs.posterior + floor, wheels)
-                wheel, agree = self._wheel_edge(prev, kf, edge, covs.prior + floor) if wheels else (None, False)
+                wheel, agree = self._wheel_edge(prev, kf, edge, covs.prior + floor, covs.posterior) if wheels else (None, False)
                 if wheel is not None:
                     self.wheel_edges.append(wheel)
                 # No wheel edge backs the step, or smooth wheels disagree with it: the registration must say how
