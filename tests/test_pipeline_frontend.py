@@ -101,11 +101,9 @@ def test_the_wheel_edge_carries_the_calibrated_model_once_enough_edges_agree():
         covs.append((wheel.covariance, fe._wheel_covariance(wheel.measurement)))
     assert np.allclose(*covs[0])  # before min_edges: the model as configured
     cal = fe.wheel_calibration
-    (t_dist, t_turn), (r_dist, r_turn) = cal.scales
-    assert cal.samples == 60 and t_dist < 0.1 and r_dist < 0.2
-    assert (t_turn, r_turn) == (t_dist, r_dist)  # no turn among the samples: the turn term keeps the block's scale
+    assert cal.samples == 60 and cal.scale_translation < 0.1 and cal.scale_rotation < 0.2
     last, model = covs[-1]
-    assert np.allclose(np.diag(last), np.diag(model) * np.array([t_dist] * 2 + [r_dist]) ** 2)
+    assert np.allclose(np.diag(last), np.diag(model) * np.array([cal.scale_translation] * 2 + [cal.scale_rotation]) ** 2)
 
 
 @pytest.mark.parametrize("k_t, k_r", [(0.4, 0.1), (1.0, 1.0), (3.0, 0.5)])
@@ -120,9 +118,9 @@ def test_wheel_calibration_recovers_the_scale_the_innovations_were_drawn_with(k_
         A = L @ L.T + np.diag([1e-6, 1e-6, 1e-8])
         d_step = rng.uniform(0.1, 0.5)
         B = np.diag([(0.1 * d_step) ** 2] * 2 + [(0.08 * d_step) ** 2])
-        cal.add(rng.multivariate_normal(np.zeros(3), A + B * np.outer(s, s)), A, np.sqrt(np.diag(B))[None])
-    assert cal.scales[0, 0] == pytest.approx(k_t, rel=0.08)
-    assert cal.scales[1, 0] == pytest.approx(k_r, rel=0.08)
+        cal.add(rng.multivariate_normal(np.zeros(3), A + B * np.outer(s, s)), A, B)
+    assert cal.scale_translation == pytest.approx(k_t, rel=0.08)
+    assert cal.scale_rotation == pytest.approx(k_r, rel=0.08)
 
 
 @pytest.mark.parametrize("k_t, k_r", [(0.12, 0.1), (0.25, 0.2)])
@@ -140,47 +138,26 @@ def test_wheel_calibration_measures_against_the_own_covariance_where_the_margins
         B = np.diag([(0.1 * d_step) ** 2] * 2 + [(0.08 * d_step) ** 2])
         floor = B * 0.5  # margins alone above the innovation's whole covariance (k² < 0.5)
         d = rng.multivariate_normal(np.zeros(3), own + B * np.outer(s, s))
-        cal.add(d, own + floor, np.sqrt(np.diag(B))[None], own)
-        floored_only.add(d, own + floor, np.sqrt(np.diag(B))[None])
-    assert np.all(floored_only.scales == 0.05)
-    assert cal.scales[0, 0] == pytest.approx(k_t, rel=0.1)
-    assert cal.scales[1, 0] == pytest.approx(k_r, rel=0.1)
+        cal.add(d, own + floor, B, own)
+        floored_only.add(d, own + floor, B)
+    assert (floored_only.scale_translation, floored_only.scale_rotation) == (0.05, 0.05)
+    assert cal.scale_translation == pytest.approx(k_t, rel=0.1)
+    assert cal.scale_rotation == pytest.approx(k_r, rel=0.1)
 
 
 def test_wheel_calibration_waits_for_its_samples_and_stays_within_its_bounds():
     cal = NoiseScaleCalibration(2, min_samples=10, bounds=(0.05, 10.0))
-    A, sig = np.eye(3) * 1e-4, np.full((1, 3), 1e-2)
+    A, B = np.eye(3) * 1e-4, np.eye(3) * 1e-4
     for _ in range(9):
-        cal.add(np.zeros(3), A, sig)
-    assert np.all(cal.scales == 1.0)
-    cal.add(np.zeros(3), A, sig)  # perfect agreement: the registration explains everything
-    assert np.all(cal.scales == 0.05)
+        cal.add(np.zeros(3), A, B)
+    assert (cal.scale_translation, cal.scale_rotation) == (1.0, 1.0)
+    cal.add(np.zeros(3), A, B)  # perfect agreement: the registration explains everything
+    assert (cal.scale_translation, cal.scale_rotation) == (0.05, 0.05)
     cal = NoiseScaleCalibration(2, min_samples=10, bounds=(0.05, 10.0))
     for _ in range(10):
-        cal.add(np.full(3, 10.0), A, sig)  # 1000 σ apart: capped
-    assert np.all(cal.scales == 10.0)
-    assert np.allclose(cal.calibrated(sig), np.eye(3) * 1e-4 * 100.0)
-
-
-@pytest.mark.parametrize("k_dist, k_turn", [(0.1, 0.4), (0.3, 0.1)])
-def test_wheel_calibration_scales_the_distance_and_the_turn_terms_apart(k_dist, k_turn):
-    """Straight steps and turns in place mixed (a robot in corridors), heading innovations drawn with the distance
-    term scaled by k_dist and the turn term by k_turn: the per-term moment fit returns both within 10 %, where one
-    scale for the block follows the straight steps (80 % of the samples) and is > 1.5× off in the turns."""
-    rng = np.random.default_rng(8)
-    two, one = NoiseScaleCalibration(2, 2), NoiseScaleCalibration(2, 1)
-    for _ in range(2000):
-        dist, ang = (rng.uniform(0.2, 0.4), rng.uniform(0.0, 0.03)) if rng.uniform() < 0.8 else (rng.uniform(0.0, 0.05), rng.uniform(0.2, 0.4))
-        S = np.array([[0.1 * dist + 1e-3] * 2 + [0.08 * dist + 1e-3], [0.15 * ang] * 2 + [0.1 * ang]])
-        A = np.diag([1e-6, 1e-6, 1e-8])
-        sigma = k_dist * S[0] + k_turn * S[1]
-        d = rng.normal(0.0, np.sqrt(np.diag(A) + sigma**2))
-        two.add(d, A, S)
-        one.add(d, A, S.sum(0)[None])
-    assert two.scales[1] == pytest.approx([k_dist, k_turn], rel=0.1)
-    assert two.scales[0] == pytest.approx([k_dist, k_turn], rel=0.1)
-    ratio = one.scales[1, 0] / k_turn  # one scale follows the straight steps that make most samples
-    assert ratio > 1.5 or ratio < 1 / 1.5
+        cal.add(np.full(3, 10.0), A, B)  # 1000 σ apart: capped
+    assert (cal.scale_translation, cal.scale_rotation) == (10.0, 10.0)
+    assert np.allclose(cal.calibrated(B), B * 100.0)
 
 
 @pytest.mark.parametrize("noise", [0.005, 0.07])
@@ -223,7 +200,7 @@ def test_on_a_simulated_log_the_calibration_scales_follow_the_wheel_noise(tmp_pa
             fe.process(frame)
         cal = fe.wheel_calibration
         assert cal is not None and cal.samples >= cal.min_samples
-        scales[alpha] = (cal.scales[0, 0], cal.scales[1, 0])
+        scales[alpha] = (cal.scale_translation, cal.scale_rotation)
     (t_lo, r_lo), (t_hi, r_hi) = scales[0.002], scales[0.05]
     assert t_hi > 2 * t_lo and 3 < r_hi / r_lo < 8, scales
 

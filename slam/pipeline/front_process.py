@@ -49,10 +49,8 @@ def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
              "slid_edges": front.slid_edges, "max_slide_m": round(front.max_slide_m, 4)}
     cal = front.wheel_calibration
     if cal is not None:
-        (t_d, t_a), (r_d, r_a) = cal.scales
-        stats |= {"wheel_noise_scale_translation_per_m": round(float(t_d), 4), "wheel_noise_scale_translation_per_rad": round(float(t_a), 4),
-                  "wheel_noise_scale_rotation_per_m": round(float(r_d), 4), "wheel_noise_scale_rotation_per_rad": round(float(r_a), 4),
-                  "wheel_calibration_samples": cal.samples}
+        stats |= {"wheel_noise_scale_translation": round(cal.scale_translation, 4),
+                  "wheel_noise_scale_rotation": round(cal.scale_rotation, 4), "wheel_calibration_samples": cal.samples}
     return FrontEndSummary(front.track, odometry_s, stats)
 
 

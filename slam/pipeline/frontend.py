@@ -174,20 +174,12 @@ class FrontEnd:
             return np.zeros((3, 3))
         return A @ slide @ A.T
 
-    def _wheel_sigmas(self, rel: Array) -> Array:
-        """The wheel model's σ per axis as two terms (rows): the distance driven (with the model's 1 mm / 1 mrad
-        constant) and the angle turned; the calibration scales each (:mod:`slam.noise_scale`)."""
+    def _wheel_covariance(self, rel: Array) -> Array:
         c = self.config.odometry
         d = float(np.linalg.norm(rel[:3, 3]))
         ang = float(np.linalg.norm(G.so3_log(rel[:3, :3])))
-        n_t = 2 if self._dof == 3 else 3
-        axes = lambda t, r: [t] * n_t + [r] * (self._dof - n_t)  # noqa: E731
-        return np.array([axes(c.wheel_sigma_per_m * d + 1e-3, c.wheel_sigma_rad_per_m * d + 1e-3),
-                         axes(c.wheel_sigma_m_per_rad * ang, c.wheel_sigma_rad_per_rad * ang)])
-
-    def _wheel_covariance(self, rel: Array) -> Array:
-        """The wheel model's covariance as configured (uncalibrated): per axis (σ_distance + σ_turn)²."""
-        return np.diag(self._wheel_sigmas(rel).sum(0) ** 2)
+        return self._diagonal((c.wheel_sigma_per_m * d + c.wheel_sigma_m_per_rad * ang + 1e-3) ** 2,
+                              (c.wheel_sigma_rad_per_m * d + c.wheel_sigma_rad_per_rad * ang + 1e-3) ** 2)
 
     def _innovation(self, edge: OdometryEdge, wheel_rel: Array) -> Array:
         """Disagreement Log(edge⁻¹ · wheels) of the wheel increment with the registration edge (tangent vector)."""
@@ -230,11 +222,10 @@ class FrontEnd:
             return None, False
         if c.wheel_calibration:
             if self.wheel_calibration is None:
-                self.wheel_calibration = NoiseScaleCalibration(2 if self._dof == 3 else 3, 2, c.wheel_calibration_min_edges)
-            sigmas = self._wheel_sigmas(wrel)
+                self.wheel_calibration = NoiseScaleCalibration(2 if self._dof == 3 else 3, c.wheel_calibration_min_edges)
             if consistent:
-                self.wheel_calibration.add(d, edge.covariance, sigmas, own_cov)
-            model = self.wheel_calibration.calibrated(sigmas)
+                self.wheel_calibration.add(d, edge.covariance, model, own_cov)
+            model = self.wheel_calibration.calibrated(model)
         return WheelEdge(prev.id, kf.id, wrel, model), consistent
 
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
