@@ -57,6 +57,24 @@ def test_a_group_along_repeating_bays_stands_only_where_the_way_in_fits_too():
     assert context_agrees(_group(kfs, poses, old_xyt, 5.0), kfs, poses, path, off)
 
 
+def test_a_group_is_refused_where_the_estimates_own_placement_fits_its_path_better():
+    """The estimate and the group are two hypotheses about where the recent path lies; the path decides. With the
+    ratio test made toothless (any pose within 1 % of the best passes it), the bays' alias 5 m along is still
+    refused when the estimate is right, since the path fits better where the estimate puts it; the group at the
+    truth stands when the estimate has drifted 2 m along the corridor, since the drifted placement fits worse."""
+    kfs, poses, path, old_xyt = _scene()
+    lenient = LoopConfig(ambiguity_ratio=0.01)
+    assert not context_agrees(_group(kfs, poses, old_xyt, 5.0), kfs, poses, path, lenient)
+    assert context_agrees(_group(kfs, poses, old_xyt, 0.0), kfs, poses, path, lenient)
+    drifted = poses.copy()
+    n_old = len(old_xyt)
+    drifted[n_old:, 0, 3] += 2.0  # the new pass, placed 2 m east of the truth by the estimate
+    truth = [LoopClosure(lc.i, lc.j, G.relative(drifted[lc.i], poses[lc.j]), lc.covariance, lc.fitness, lc.rmse,
+                         lc.source, True) for lc in _group(kfs, poses, old_xyt, 0.0)]
+    assert context_agrees(truth, kfs, drifted, path, lenient)
+    assert context_agrees(truth, kfs, drifted, path, LoopConfig())
+
+
 def test_a_group_with_no_path_of_its_own_since_the_old_place_is_left_to_the_other_tests():
     """When the newest old keyframe lies within the last quarter of the context path (a short loop), the recent
     path holds the old place itself: the test has nothing to add and agrees, alias or not."""

@@ -12,7 +12,9 @@ matched as one cloud, by the correlative search, on the old place's surroundings
 much path either side of the group's old keyframes, none of them part of the recent path. The search spans
 ± ``group_context_window_m`` and ± ``window_floor_deg`` round the group's own pose. The group stands when
 the best pose lies within a floor window of its own, or its own pose scores at least ``ambiguity_ratio``
-of the best — the uniqueness test of one closure, on the evidence of a whole path. Matching the larger
+of the best — the uniqueness test of one closure, on the evidence of a whole path — and the estimate's own
+placement of the path (each refined within a floor window) does not fit it better: the estimate and the group
+are two hypotheses, and the path is the evidence between them. Matching the larger
 context where a single scan is ambiguous is Olson's argument for place recognition (E. Olson,
 "Recognizing places using spectrally clustered local matches", Robotics and Autonomous Systems 57(12),
 2009: a match must be locally unambiguous and globally sufficient); Cartographer matches scans against
@@ -103,7 +105,8 @@ def _group_path_match(group: list[LoopClosure], keyframes: list[Keyframe], poses
 def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
                    config: LoopConfig, min_score: float = 0.0) -> bool:
     """Whether the recent path up to the *group*'s newest keyframe, matched as a whole on the old place, lands
-    where the group says (see the module docstring). *path_m*: cumulative odometry path (m) at each keyframe.
+    where the group says (see the module docstring), and does not fit better where the estimate puts it
+    (:func:`_estimate_fits_better`). *path_m*: cumulative odometry path (m) at each keyframe.
     True when the test has nothing to add: off, no recent path of its own, no surroundings, or a best pose
     that scores below *min_score* (a path the estimate blurred, or surroundings that hold little of it: no
     pose explains it, and which explains it least badly says nothing)."""
@@ -121,7 +124,24 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
         return True
     d = G.matrix_to_xytheta(G.relative(guess, found.transform))
     near = bool(np.hypot(d[0], d[1]) <= c.window_floor_m and abs(d[2]) <= np.radians(c.window_floor_deg))
-    return near or found.guess_score >= c.ambiguity_ratio * found.score
+    if not (near or found.guess_score >= c.ambiguity_ratio * found.score):
+        return False
+    return not _estimate_fits_better(query, pyramid, guess, _planar(G.relative(poses[newest.i], poses[newest.j])), c)
+
+
+def _estimate_fits_better(query: Array, pyramid: correlative.LikelihoodPyramid, group_T: Array, estimate_T: Array,
+                          config: LoopConfig) -> bool:
+    """Whether the recent path fits the old place better where the estimate puts it than where the group does:
+    each placement refined within a floor window, the two more than a floor window apart, the estimate's
+    scoring higher. Two hypotheses, one evidence: a group that moves the robot off a placement its own path
+    fits better is the alias (a T-junction's side corridor seen from a new arm, which the old place's map does
+    not hold, so the ratio above passes it), while a group that corrects a drifted estimate moves the path from
+    a worse fit to a better one."""
+    floor_rad = np.radians(config.window_floor_deg)
+    mine = correlative.match(query, pyramid, group_T, config.window_floor_m, floor_rad)
+    theirs = correlative.match(query, pyramid, estimate_T, config.window_floor_m, floor_rad)
+    d = G.matrix_to_xytheta(G.relative(mine.transform, theirs.transform))
+    return bool(np.hypot(d[0], d[1]) > config.window_floor_m and theirs.score > mine.score)
 
 
 def path_score(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
