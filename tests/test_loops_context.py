@@ -65,6 +65,7 @@ def test_a_group_is_refused_where_the_estimates_own_placement_fits_its_path_bett
     kfs, poses, path, old_xyt = _scene()
     lenient = LoopConfig(ambiguity_ratio=0.01)
     assert not context_agrees(_group(kfs, poses, old_xyt, 5.0), kfs, poses, path, lenient)
+    assert not context_agrees(_group(kfs, poses, old_xyt, 5.0), kfs, poses, path, lenient, min_score=2.0)  # no abstaining
     assert context_agrees(_group(kfs, poses, old_xyt, 0.0), kfs, poses, path, lenient)
     drifted = poses.copy()
     n_old = len(old_xyt)
