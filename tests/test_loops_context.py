@@ -7,7 +7,7 @@ import numpy as np
 from core import geometry as G
 from slam.loops.config import LoopConfig
 from registration import correlative
-from slam.loops.context import context_agrees, path_unique
+from slam.loops.context import context_agrees, path_overrules, path_unique
 from slam.loops.types import LoopClosure
 
 from tests.loop_scenes import bays_round_a_corner, keyframes
@@ -74,6 +74,23 @@ def test_a_group_is_refused_where_the_estimates_own_placement_fits_its_path_bett
                          lc.source, True) for lc in _group(kfs, poses, old_xyt, 0.0)]
     assert context_agrees(truth, kfs, drifted, path, lenient)
     assert context_agrees(truth, kfs, drifted, path, LoopConfig())
+
+
+def test_a_group_overrules_the_estimate_only_where_the_path_matched_from_the_estimate_moves_to_it():
+    """The estimate puts the return 0.6 m east of the truth. The path, matched on the old place from there (±1 m),
+    moves to the truth: a group at the truth overrules it. Where the estimate is right, a group 0.6 m east does
+    not (the path stays), nor one 0.2 m east (within the match's resolution, the path stays nearer the estimate),
+    nor any group with the context off."""
+    kfs, poses, path, old_xyt = _scene()
+    cfg = LoopConfig()
+    drifted = poses.copy()
+    drifted[len(old_xyt):, 0, 3] += 0.6
+    truth = [LoopClosure(lc.i, lc.j, G.relative(drifted[lc.i], poses[lc.j]), lc.covariance, lc.fitness, lc.rmse,
+                         lc.source, True) for lc in _group(kfs, poses, old_xyt, 0.0)]
+    assert path_overrules(truth, kfs, drifted, path, cfg)
+    assert not path_overrules(_group(kfs, poses, old_xyt, 0.6), kfs, poses, path, cfg)
+    assert not path_overrules(_group(kfs, poses, old_xyt, 0.2), kfs, poses, path, cfg)
+    assert not path_overrules(truth, kfs, drifted, path, cfg.model_copy(update={"group_context_path_m": None}))
 
 
 def test_a_group_with_no_path_of_its_own_since_the_old_place_is_left_to_the_other_tests():

@@ -216,8 +216,8 @@ def _acceptance(cfg: LoopConfig | None = None, K: int = 60, step_cov: float = 1e
 
 def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
     """The gate is the consistency_probability quantile of χ²(3) on the Mahalanobis distance under the sum
-    of both covariances: an offset just inside is accepted alone, just outside rejected (where the estimate
-    vouches, no group may overturn it)."""
+    of both covariances: an offset just inside is accepted alone, just outside rejected (without the closer's
+    overrule hook, no group may overturn an estimate that vouches)."""
     cfg = LoopConfig()
     gate = chi2.ppf(cfg.consistency_probability, 3)
     est = G.xytheta_to_matrix(2.0, 0.0, 0.0)
@@ -530,6 +530,35 @@ def test_an_agreeing_group_its_context_check_refuses_expires_and_is_counted():
         assert len(group) == (5 if verdict else 0)
         assert acc.stats.groups_out_of_context == (0 if verdict else 1)
         assert acc.stats.pending_expired == (0 if verdict else 5)
+
+
+def test_a_group_the_estimate_vouched_against_stands_only_when_its_recent_path_bears_it_out():
+    """Where the estimate vouches and disagrees (0.3 m and 1° off, sure to 1 cm and 0.06°), a unique closure is
+    held for a group instead of dropped; the group then needs the ``overrule`` hook's word (the closer's
+    path_overrules) besides every other test: refused and counted when it says no, accepted when it says yes.
+    Without the hook such closures are rejected as before."""
+    truth = _corridor_truth()
+    est = truth.copy()
+    est[30:35] = G.xytheta_to_matrix(0.3, 0.0, np.radians(1.0)) @ truth[30:35]
+    est_cov, cov = np.diag([1e-4, 1e-4, 1e-6]), np.diag([1e-4, 1e-4, 1e-5])
+    W = LoopConfig().group_window_keyframes
+    for verdict in (None, False, True):
+        rng = np.random.default_rng(5)
+        acc = _acceptance(step_cov=1e-5)
+        acc.confirm = lambda group, poses: True
+        if verdict is not None:
+            acc.overrule = lambda group, poses, verdict=verdict: verdict
+        for i, j in zip(range(5), range(30, 35)):
+            T = G.relative(truth[i], truth[j]) @ G.xytheta_to_matrix(*rng.normal(0, [0.01, 0.01, np.radians(0.1)]))
+            e = G.relative(est[i], est[j])
+            assert mahalanobis2(e, est_cov, T, cov, True) > acc.gate
+            assert acc.consider(_verified(i, j, T, e, est_cov, True, cov), _keyframes(60), _line(60), lambda v: True) is None
+        assert len(acc.pending) == (0 if verdict is None else 5)
+        assert acc.stats.rejections[Rejection.INCONSISTENT] == (5 if verdict is None else 0)
+        group = acc.decide(30 + W - 1, est)
+        assert len(group) == (5 if verdict else 0)
+        assert acc.stats.groups_not_overruling == int(verdict is False)
+        assert acc.overruling == set()  # decided: none is remembered
 
 
 def _two_passes_truth(K: int = 60) -> np.ndarray:

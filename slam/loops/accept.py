@@ -4,8 +4,13 @@
   is accepted when it is consistent with the estimate: the squared Mahalanobis distance of the alignment from the
   estimate's relative pose, under the sum of both covariances, is within the ``consistency_probability`` quantile
   of χ²(dof) (the χ² gate of Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
-  One that fails the gate is rejected: where the estimate vouches, no group overturns it (a road whose trees
-  repeat every metre offered a consistent group 1 m along; docs/LOOP_CLOSURE.md has the case).
+  One that fails the gate is rejected — unless it is unique, when it waits for a group like the closures below,
+  and that group stands only if the closer's :attr:`Acceptance.overrule` hook also agrees: the recent path,
+  matched on the old place from where the estimate puts it, moves where the group says
+  (:func:`~slam.loops.context.path_overrules`). An estimate that vouches is overconfident when its odometry
+  erred beyond its model (wheels that turn wrong, an unmodelled heading drift), and then it refused every true
+  revisit; a road whose trees repeat every metre offered a consistent group 1 m along, which the path, started
+  from the right estimate, does not follow (docs/LOOP_CLOSURE.md has both).
 * Everything else — an alignment the estimate cannot vouch for — waits, *pending*. But none outside
   three of the windows the estimate itself would have searched (9 σ per axis, with the floors), when
   the place lies within spatial reach: a descriptor match of a corridor seen turned round is an alias
@@ -110,6 +115,10 @@ class Acceptance:
         #: how well a group's recent path fits where it puts it (the closer's :func:`~slam.loops.context.path_score`;
         #: None: nothing to tell): decides between rival groups at one place
         self.fit: Callable[[list[LoopClosure], Array], float | None] | None = None
+        #: whether a group that overrules the estimate (:attr:`overruling` members) is borne out by its recent
+        #: path (the closer's :func:`~slam.loops.context.path_overrules`; None: no such group stands)
+        self.overrule: Callable[[list[LoopClosure], Array], bool] | None = None
+        self.overruling: set[int] = set()  # ids of pending closures the estimate vouched against
 
     def consider(self, v: Verified, keyframes: list[Keyframe], poses: Array,
                  unique: Callable[[Verified], bool], hold: list[Pending] | None = None) -> LoopClosure | None:
@@ -142,8 +151,14 @@ class Acceptance:
                 self.recent.append(lc)
                 self.stats.accepted += 1
                 return lc
-            self.stats.rejections[Rejection.INCONSISTENT] += 1
-            return None  # the estimate vouches and disagrees: no group overturns it
+            if self.overrule is None or not unique(v):
+                self.stats.rejections[Rejection.INCONSISTENT] += 1
+                return None
+            lc = to_closure(v, keyframes, self.planar)
+            self.overruling.add(id(lc))
+            self.stats.overruling += 1
+            pending.append(Pending(lc, True, v.map_half))
+            return None  # the estimate vouches and disagrees: only a group its recent path bears out overturns it
         if not unique(v):
             self.stats.rejections[Rejection.AMBIGUOUS] += 1
             return None
@@ -198,10 +213,14 @@ class Acceptance:
             if self.confirm is not None and not self.confirm(group, poses):
                 self.stats.groups_out_of_context += 1
                 break
+            if any(id(lc) in self.overruling for lc in group) and not (self.overrule is not None and self.overrule(group, poses)):
+                self.stats.groups_not_overruling += 1
+                break
             accepted += group
             left = others
         members = {id(lc) for lc in accepted}
         self.stats.pending_expired += sum(1 for lc in closures if id(lc) not in members)
+        self.overruling -= {id(lc) for lc in closures}
         for lc in accepted:
             lc.group = True
         self.stats.accepted_as_group += len(accepted)

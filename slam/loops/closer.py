@@ -32,7 +32,7 @@ from slam.keyframes import Keyframe
 from . import candidates as C
 from .accept import Acceptance, Pending, to_closure
 from .config import LoopConfig
-from .context import context_agrees, path_score, path_unique
+from .context import context_agrees, path_overrules, path_score, path_unique
 from .descriptor import SCAN_CONTEXT_3D, DescriptorIndex, PolarDescriptorConfig, polar_descriptor
 from .local_map import LocalMaps
 from .surroundings import Surroundings
@@ -58,6 +58,8 @@ class LoopCloser:
             self.acceptance.confirm = self._context_agrees
             self.acceptance.fit = lambda group, poses: path_score(group, self._keyframes, poses,
                                                                   np.asarray(self._path_m), self.config)
+            self.acceptance.overrule = lambda group, poses: path_overrules(group, self._keyframes, poses,
+                                                                           np.asarray(self._path_m), self.config)
         self.index = (DescriptorIndex(PolarDescriptorConfig() if planar else SCAN_CONTEXT_3D)
                       if config.descriptor else None)
         self._path_m: list[float] = []  # cumulative odometry path length at each keyframe

@@ -148,6 +148,29 @@ def _estimate_fits_better(query: Array, pyramid: correlative.LikelihoodPyramid, 
     return bool(np.hypot(d[0], d[1]) > config.window_floor_m and theirs.score > mine.score)
 
 
+def path_overrules(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
+                   config: LoopConfig) -> bool:
+    """Whether the recent path, matched on the old place from where the estimate puts it (within a floor
+    window), moves where the *group* says: its best pose lies within the uniqueness radius (a few cells and
+    degrees) of the group's and farther from the estimate's. A group the estimate vouched against claims the
+    estimate is off by more than it knows; the path's own match, started from the estimate, is the second
+    measurement of that correction. False when there is nothing to match."""
+    try:
+        matched = _group_path_match(group, keyframes, poses, path_m, config)
+    except DegenerateInputError:
+        return False
+    if matched is None:
+        return False
+    newest, query, pyramid = matched
+    mine, theirs = _planar(newest.measurement), _planar(G.relative(poses[newest.i], poses[newest.j]))
+    found = correlative.match(query, pyramid, theirs, config.window_floor_m, np.radians(config.window_floor_deg))
+    to_group = G.matrix_to_xytheta(G.relative(mine, found.transform))
+    to_estimate = G.matrix_to_xytheta(G.relative(theirs, found.transform))
+    radius = UNIQUE_RADIUS_CELLS * pyramid.resolution
+    near = np.hypot(to_group[0], to_group[1]) <= radius and abs(to_group[2]) <= UNIQUE_RADIUS_RAD
+    return bool(near and np.hypot(to_group[0], to_group[1]) < np.hypot(to_estimate[0], to_estimate[1]))
+
+
 def path_score(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
                config: LoopConfig) -> float | None:
     """The correlative score (0–1) of the recent path up to the *group*'s newest keyframe, placed as that member

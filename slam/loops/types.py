@@ -125,7 +125,9 @@ class LoopStats:
     accepted_as_group: int = 0  # accepted as members of an agreeing group
     pending_expired: int = 0  # pending closures whose window passed without a group
     groups_contradicted: int = 0  # groups refused because an accepted closure nearby disagrees
-    groups_out_of_context: int = 0  # groups refused because the recent path, matched as a whole, lands elsewhere
+    groups_out_of_context: int = 0  # groups refused because the recent path, matched as a whole, lands elsewhere (or fits the estimate's placement better)
+    overruling: int = 0  # unique closures the estimate vouched against, held for a group its recent path bears out
+    groups_not_overruling: int = 0  # such groups refused: the recent path, matched from the estimate, stays
     unique_by_path: int = 0  # closures whose scan was ambiguous held pending because the recent path is unique there
     groups_by_path: int = 0  # groups that gave way to a rival at the same place whose recent path fits better
     left_to_their_place: int = 0  # members of a consistent set left out of its group: their old place is one the chain cannot compare
