@@ -102,6 +102,15 @@ def _group_path_match(group: list[LoopClosure], keyframes: list[Keyframe], poses
     return None if clouds is None else (newest, *clouds)
 
 
+def _group_path_match_or_none(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
+                              config: LoopConfig) -> tuple[LoopClosure, Array, correlative.LikelihoodPyramid] | None:
+    """:func:`_group_path_match`, None also where the clouds hold too few points."""
+    try:
+        return _group_path_match(group, keyframes, poses, path_m, config)
+    except DegenerateInputError:
+        return None
+
+
 def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
                    config: LoopConfig, min_score: float = 0.0) -> bool:
     """Whether the recent path up to the *group*'s newest keyframe, matched as a whole on the old place, lands
@@ -155,10 +164,7 @@ def path_overrules(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
     degrees) of the group's and farther from the estimate's. A group the estimate vouched against claims the
     estimate is off by more than it knows; the path's own match, started from the estimate, is the second
     measurement of that correction. False when there is nothing to match."""
-    try:
-        matched = _group_path_match(group, keyframes, poses, path_m, config)
-    except DegenerateInputError:
-        return False
+    matched = _group_path_match_or_none(group, keyframes, poses, path_m, config)
     if matched is None:
         return False
     newest, query, pyramid = matched
@@ -176,10 +182,7 @@ def path_score(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array
     """The correlative score (0–1) of the recent path up to the *group*'s newest keyframe, placed as that member
     says, on the old place's surroundings — how well the path that led there fits where the group puts it;
     None when there is nothing to match (as in :func:`context_agrees`)."""
-    try:
-        matched = _group_path_match(group, keyframes, poses, path_m, config)
-    except DegenerateInputError:
-        return None
+    matched = _group_path_match_or_none(group, keyframes, poses, path_m, config)
     if matched is None:
         return None
     newest, query, pyramid = matched
