@@ -213,7 +213,8 @@ class Acceptance:
             if self.confirm is not None and not self.confirm(group, poses):
                 self.stats.groups_out_of_context += 1
                 break
-            if any(id(lc) in self.overruling for lc in group) and not (self.overrule is not None and self.overrule(group, poses)):
+            overrules = any(id(lc) in self.overruling for lc in group)
+            if overrules and not (self.overrule is not None and self.overrule(group, poses)):
                 self.stats.groups_not_overruling += 1
                 break
             accepted += group
