@@ -87,11 +87,11 @@ class NoiseScaleCalibration:
         A = np.array(self._fixed)
         B = np.array(self._model)
         n = self.n_translation
+        own = np.array(self._own)
         scales = []
         for b in (slice(0, n), slice(n, None)):
             k = self._solve(d[:, b], A[:, b, b], B[:, b, b])
             if k <= self.bounds[0]:  # the margins alone exceed the disagreement: measure against the own claim
-                own = np.array(self._own)
                 k = self._solve(d[:, b], own[:, b, b], B[:, b, b])
             scales.append(k)
         self.scale_translation, self.scale_rotation = scales

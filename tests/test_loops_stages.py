@@ -558,7 +558,7 @@ def test_a_group_the_estimate_vouched_against_stands_only_when_its_recent_path_b
         group = acc.decide(30 + W - 1, est)
         assert len(group) == (5 if verdict else 0)
         assert acc.stats.groups_not_overruling == int(verdict is False)
-        assert acc.overruling == set()  # decided: none is remembered
+        assert acc.pending == []  # decided: none is left waiting
 
 
 def _two_passes_truth(K: int = 60) -> np.ndarray:

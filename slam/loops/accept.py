@@ -64,6 +64,7 @@ class Pending:
     closure: LoopClosure
     vouched: bool
     map_half: int  # of the local map it was verified against (its follow-ups use the same)
+    overrules: bool = False  # the estimate vouched against it: its group needs :attr:`Acceptance.overrule`
 
 
 def to_closure(v: Verified, keyframes: list[Keyframe], planar: bool, group: bool = False) -> LoopClosure:
@@ -115,10 +116,9 @@ class Acceptance:
         #: how well a group's recent path fits where it puts it (the closer's :func:`~slam.loops.context.path_score`;
         #: None: nothing to tell): decides between rival groups at one place
         self.fit: Callable[[list[LoopClosure], Array], float | None] | None = None
-        #: whether a group that overrules the estimate (:attr:`overruling` members) is borne out by its recent
-        #: path (the closer's :func:`~slam.loops.context.path_overrules`; None: no such group stands)
+        #: whether a group with members that overrule the estimate (:attr:`Pending.overrules`) is borne out by its
+        #: recent path (the closer's :func:`~slam.loops.context.path_overrules`; None: no such group stands)
         self.overrule: Callable[[list[LoopClosure], Array], bool] | None = None
-        self.overruling: set[int] = set()  # ids of pending closures the estimate vouched against
 
     def consider(self, v: Verified, keyframes: list[Keyframe], poses: Array,
                  unique: Callable[[Verified], bool], hold: list[Pending] | None = None) -> LoopClosure | None:
@@ -154,10 +154,8 @@ class Acceptance:
             if self.overrule is None or not unique(v):
                 self.stats.rejections[Rejection.INCONSISTENT] += 1
                 return None
-            lc = to_closure(v, keyframes, self.planar)
-            self.overruling.add(id(lc))
             self.stats.overruling += 1
-            pending.append(Pending(lc, True, v.map_half))
+            pending.append(Pending(to_closure(v, keyframes, self.planar), True, v.map_half, overrules=True))
             return None  # the estimate vouches and disagrees: only a group its recent path bears out overturns it
         if not unique(v):
             self.stats.rejections[Rejection.AMBIGUOUS] += 1
@@ -177,26 +175,28 @@ class Acceptance:
         if j < first + W - 1:
             return []  # the window after the first pending closure is not complete yet
         window = [p for p in self.pending if p.closure.j < first + W]
-        accepted = self._agreeing([p.closure for p in window], poses)
+        accepted = self._agreeing(window, poses)
         # The window is decided: its closures leave the pool (a group's members as accepted ones).
         self.pending = [p for p in self.pending if p.closure.j >= first + W]
         return accepted
 
     def decide_held(self, held: list[Pending], poses: Array) -> list[LoopClosure]:
         """The group among *held* closures (those :meth:`consider` kept aside for one search), decided at once."""
-        return self._agreeing([p.closure for p in held], poses)
+        return self._agreeing(held, poses)
 
-    def _agreeing(self, closures: list[LoopClosure], poses: Array) -> list[LoopClosure]:
-        """The groups among *closures*: the largest pairwise-consistent subset, its part at one old place
+    def _agreeing(self, pending: list[Pending], poses: Array) -> list[LoopClosure]:
+        """The groups among the *pending* closures: the largest pairwise-consistent subset, its part at one old place
         (:meth:`_one_place`; or its rival there whose recent path fits better, :meth:`_fitter`), accepted when
-        it spans ``group_min_size`` new keyframes, no closure accepted alone nearby contradicts it and
-        :attr:`confirm` (when set) agrees; then
+        it spans ``group_min_size`` new keyframes, no closure accepted alone nearby contradicts it,
+        :attr:`confirm` (when set) agrees and, when a member overrules the estimate, :attr:`overrule` does; then
         the same again among the closures against *other* old places — those whose old keyframe the graph
         cannot vouch for relative to any accepted member's (:meth:`_other_places`) — until no group is left
         (the rest expire). A return seen against two old passes that the graph has
         misplaced relative to each other gives two groups, each consistent and each inconsistent with the
         other through the graph's wrong stretch between the passes: both are revisits, and the larger one
         does not refute the smaller."""
+        closures = [p.closure for p in pending]
+        overruling = {id(p.closure) for p in pending if p.overrules}
         accepted: list[LoopClosure] = []
         left = closures
         while left:
@@ -213,7 +213,7 @@ class Acceptance:
             if self.confirm is not None and not self.confirm(group, poses):
                 self.stats.groups_out_of_context += 1
                 break
-            overrules = any(id(lc) in self.overruling for lc in group)
+            overrules = any(id(lc) in overruling for lc in group)
             if overrules and not (self.overrule is not None and self.overrule(group, poses)):
                 self.stats.groups_not_overruling += 1
                 break
@@ -221,7 +221,6 @@ class Acceptance:
             left = others
         members = {id(lc) for lc in accepted}
         self.stats.pending_expired += sum(1 for lc in closures if id(lc) not in members)
-        self.overruling -= {id(lc) for lc in closures}
         for lc in accepted:
             lc.group = True
         self.stats.accepted_as_group += len(accepted)
