@@ -30,6 +30,7 @@ and the a-posteriori residual variance (the a-posteriori variance factor), plus 
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -332,12 +333,9 @@ def free_space_violation(points_in_sensor: Array, keyframe: Keyframe, margin: fl
     *min_inside* of the points (a fraction) do: too little overlap to say anything.
     """
     frame = keyframe.frame
-    ang, rng = frame.angles, frame.ranges
-    if ang is None or rng is None or len(ang) < 2:
+    if frame.angles is None or frame.ranges is None or len(frame.angles) < 2:
         return 0.0
-    order = np.argsort(ang)
-    a, r_beam, dropped = ang[order], rng[order], frame.no_return[order]
-    inc = float(np.median(np.diff(a)))
+    a, near, dropped, inc = _beams_by_angle(frame)
     phi = np.arctan2(points_in_sensor[:, 1], points_in_sensor[:, 0])
     r = np.hypot(points_in_sensor[:, 0], points_in_sensor[:, 1])
     # The nearest beam by angle (a reader may have left out beams, so the angles need not be uniform).
@@ -349,11 +347,26 @@ def free_space_violation(points_in_sensor: Array, keyframe: Keyframe, margin: fl
         return 0.0
     # The shortest return of the beam and its two neighbours: a wall seen at a glancing angle changes
     # range quickly from beam to beam, and a point between two beams is not contradicted by one of them.
-    near = np.where(dropped, np.inf, r_beam)
     lo, hi = np.clip(k - 1, 0, len(a) - 1), np.clip(k + 1, 0, len(a) - 1)
     shortest = np.minimum(np.minimum(near[lo], near[k]), near[hi])
     viol = inside & (shortest > r + margin + rel_margin * r)
     return float(viol.sum() / n_in)
+
+
+#: each scan's beams in angle order, made once per frame: the test above runs ~20 times per keyframe
+_BEAMS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _beams_by_angle(frame) -> tuple[Array, Array, Array, float]:  # type: ignore[no-untyped-def]
+    """*frame*'s beams sorted by angle: angles (rad), ranges (m, ``inf`` where the beam returned nothing),
+    the no-return mask, and the median angular increment (rad); cached per frame."""
+    got = _BEAMS.get(frame)
+    if got is None:
+        order = np.argsort(frame.angles)
+        a, dropped = frame.angles[order], frame.no_return[order]
+        got = a, np.where(dropped, np.inf, frame.ranges[order]), dropped, float(np.median(np.diff(a)))
+        _BEAMS[frame] = got
+    return got
 
 
 def free_space_violation_both(i_T_j: Array, kj: Keyframe, ki: Keyframe) -> float:
