@@ -35,6 +35,7 @@ __all__ = [
     "relative",
     "compose",
     "transform_points",
+    "bounds",
     "xytheta_to_matrix",
     "matrix_to_xytheta",
     "wrap_angle",
@@ -69,6 +70,10 @@ def is_pose(T: ArrayLike, tol: float = 1e-6) -> bool:
     T = np.asarray(T, dtype=float)
     if T.shape[-2:] != (4, 4):
         return False
+    if T.ndim == 2:  # one pose: the determinant in closed form (np.linalg.det costs ~10 µs a call)
+        R, ((a, b, c), (d, e, f), (g, h, i)) = T[:3, :3], T[:3, :3].tolist()
+        det1 = abs(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) - 1.0) <= tol
+        return bool(det1 and np.abs(R.T @ R - np.eye(3)).max() <= tol and np.abs(T[3] - (0, 0, 0, 1.0)).max() <= tol)
     R = T[..., :3, :3]
     ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() <= tol
     det = np.abs(np.linalg.det(R) - 1.0).max() <= tol
@@ -79,6 +84,10 @@ def is_pose(T: ArrayLike, tol: float = 1e-6) -> bool:
 def inverse(T: ArrayLike) -> Array:
     """Closed-form inverse [Rᵀ, −Rᵀt] of one pose or a stack of poses."""
     T = np.asarray(T, dtype=float)
+    if T.shape == (4, 4):  # one pose: scalar arithmetic, the same sums in the same order, ~3× faster
+        (a, b, c, x), (d, e, f, y), (g, h, i, z) = T[:3].tolist()
+        return np.array([[a, d, g, -(a * x + d * y + g * z)], [b, e, h, -(b * x + e * y + h * z)],
+                         [c, f, i, -(c * x + f * y + i * z)], [0.0, 0.0, 0.0, 1.0]])
     R = T[..., :3, :3]
     t = T[..., :3, 3]
     Rt = np.swapaxes(R, -1, -2)
@@ -113,6 +122,15 @@ def transform_points(T: ArrayLike, points: ArrayLike) -> Array:
     return P @ T[:3, :3].T + T[:3, 3]
 
 
+def bounds(points: ArrayLike) -> tuple[Array, Array]:
+    """Lower and upper corner (per coordinate) of points ``(N, d)``, N ≥ 1: the same values as ``min(axis=0)``
+    and ``max(axis=0)``, one reduction per column (numpy's axis-0 reduction of a narrow (N, 2) array is ~10×
+    slower, and the loop-closure searches take bounds of thousands of local maps)."""
+    P = np.asarray(points)
+    cols = range(P.shape[1])
+    return np.array([P[:, k].min() for k in cols]), np.array([P[:, k].max() for k in cols])
+
+
 # ----------------------------------------------------------------------------- planar
 
 def wrap_angle(theta: ArrayLike) -> Array | float:
@@ -145,6 +163,10 @@ def xytheta_to_matrix(x: ArrayLike, y: ArrayLike | None = None, theta: ArrayLike
             raise GeometryError(f"expected (..., 3) array of (x, y, theta), got shape {v.shape}")
         x, y, theta = v[..., 0], v[..., 1], v[..., 2]
     x = np.asarray(x, dtype=float)
+    if x.ndim == 0 and np.ndim(y) == 0 and np.ndim(theta) == 0:  # one pose, without the stacking
+        th = np.asarray(theta, dtype=float)
+        c, s = np.cos(th), np.sin(th)
+        return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]], dtype=float)
     T = np.zeros(np.shape(x) + (4, 4))
     T[..., :3, :3] = rotz(theta)
     T[..., 0, 3] = x
@@ -156,6 +178,8 @@ def xytheta_to_matrix(x: ArrayLike, y: ArrayLike | None = None, theta: ArrayLike
 def matrix_to_xytheta(T: ArrayLike) -> Array:
     """4×4 pose (or stack) → (x, y, θ) with θ = atan2(R10, R00) in [−π, π]."""
     T = np.asarray(T, dtype=float)
+    if T.ndim == 2:  # one pose, without the stacking
+        return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
     return np.stack([T[..., 0, 3], T[..., 1, 3], np.arctan2(T[..., 1, 0], T[..., 0, 0])], -1)
 
 

@@ -25,6 +25,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from core import geometry as G
+
 Array = NDArray[np.float64]
 
 __all__ = ["PointGrid", "nearest_point", "nearest_within", "knn_normal", "normals_2d", "cached_nearest", "insert_best",
@@ -40,7 +42,7 @@ class PointGrid:
 
     def __init__(self, points: Array, cell: float = 0.25) -> None:
         pts = np.ascontiguousarray(points[:, :2], dtype=np.float64)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        lo, hi = G.bounds(pts)
         span = float(max(hi[0] - lo[0], hi[1] - lo[1]))
         cell = max(cell, span / math.sqrt(MAX_CELLS))
         self.points = pts

@@ -11,6 +11,7 @@ from typing import Iterable, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from core import geometry as G
 from core.errors import GeometryError
 
 Array = NDArray[np.float64]
@@ -39,8 +40,8 @@ def voxel_keys(points: Array, size: float) -> NDArray[np.int64]:
     if size <= 0 or not np.isfinite(size):
         raise GeometryError(f"voxel size must be positive and finite, got {size}")
     ijk = np.floor(points / size).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    span = ijk.max(axis=0) + 1
+    ijk -= G.bounds(ijk)[0]
+    span = G.bounds(ijk)[1] + 1
     if np.prod(span.astype(np.float64)) >= 2.0**62:
         raise GeometryError(f"point extent too large for voxel size {size} m")
     key = ijk[:, 0]

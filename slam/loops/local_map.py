@@ -50,7 +50,7 @@ class LocalMap:
 
     def extent(self) -> tuple[Array, Array]:
         """Lower and upper corner (m) of the map's points in the plane."""
-        return self.points[:, :2].min(axis=0), self.points[:, :2].max(axis=0)
+        return G.bounds(self.points[:, :2])
 
 
 def sensor_relative(keyframes: list[Keyframe], poses: Array, i: int, j: int) -> Array:
