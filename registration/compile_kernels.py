@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .kernels import PointGrid, cached_nearest, nearest_within, normals_2d
-from .kernels_correlative import branch_and_bound, rotated_cells, score_candidates
+from .kernels_correlative import branch_and_bound, rotated_cells, score_candidates, stamp_field
 from .kernels_icp import plane_icp_2d
 from .kernels_grid3d import VoxelGrid3D, normals_3d, voxel_first_3d
 from .kernels_icp3d import plane_icp_3d
@@ -41,6 +41,7 @@ def compile_all() -> None:
     point_icp_3d(cloud.copy(), np.eye(3), np.zeros(3), np.array([0.5]), 2, 1e-4, 1e-4, 2, 0.1, 3, True, g3.points,
                  *g3.args())
     voxel_first_3d(cloud, 0.5)
+    stamp_field(np.zeros(16, np.uint8), np.array([5], np.int64), np.array([0, 1], np.int64), np.array([255, 9], np.uint8))
     branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1)
 
 

@@ -52,10 +52,10 @@ class LikelihoodPyramid:
         self.levels = int(levels)
         reach = int(np.ceil(3.0 * sigma / resolution))
         pad = reach + 2**self.levels + 1  # zero border: clipped indices read 0 at every level
-        lo = pts.min(axis=0)
+        lo = G.bounds(pts)[0]
         self.origin = lo - pad * resolution
         cells = np.floor((pts - self.origin) / resolution).astype(np.int64)
-        shape = tuple(int(s) for s in cells.max(axis=0) + pad + 1)
+        shape = tuple(int(s) for s in G.bounds(cells)[1] + pad + 1)
         # Stored as bytes (likelihood × 255): the pyramid of a 30 m local map at 5 cm is ~2.5 MB.
         # One (levels + 1, H, W) array: level h is grids[h].
         self.grids = np.empty((self.levels + 1,) + shape, dtype=np.uint8)
@@ -97,14 +97,15 @@ def likelihood_field(cells: NDArray[np.int64], shape: tuple[int, int], resolutio
     seen = np.zeros(flat.shape, dtype=bool)  # the occupied cells, each once and in order (np.unique's, without its sort)
     seen[cells[:, 0] * shape[1] + cells[:, 1]] = True
     occ = np.flatnonzero(seen)
+    offsets, values = [], []
     for di in range(-reach, reach + 1):
         for dj in range(-reach, reach + 1):
             d = np.sqrt(float(di * di + dj * dj)) * resolution
             if d > 3.0 * sigma:
                 continue
-            v = np.uint8(np.rint(np.exp(-0.5 * (d / sigma) ** 2) * 255.0))
-            at = occ + (di * shape[1] + dj)  # each cell once per offset: plain fancy assignment
-            flat[at] = np.maximum(flat[at], v)
+            values.append(np.uint8(np.rint(np.exp(-0.5 * (d / sigma) ** 2) * 255.0)))
+            offsets.append(di * shape[1] + dj)
+    kernels.stamp_field(flat, occ, np.array(offsets, dtype=np.int64), np.array(values, dtype=np.uint8))
     return field
 
 

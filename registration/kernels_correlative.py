@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["rotated_cells", "score_candidates", "branch_and_bound"]
+__all__ = ["rotated_cells", "score_candidates", "branch_and_bound", "stamp_field"]
 
 
 @njit(cache=True)
@@ -27,6 +27,17 @@ def rotated_cells(pts, cos_t, sin_t, x0, y0, origin_x, origin_y, resolution):  #
     return out
 
 
+@njit(cache=True)
+def stamp_field(flat, occ, offsets, values):  # pragma: no cover - compiled
+    """``flat[c + offsets[k]] = max(flat[c + offsets[k]], values[k])`` for every occupied flat cell c of *occ*
+    and every stamp offset k: :func:`registration.correlative.likelihood_field`'s maximum of stamps."""
+    for k in range(offsets.shape[0]):
+        off, v = offsets[k], values[k]
+        for c in occ:
+            if flat[c + off] < v:
+                flat[c + off] = v
+
+
 @njit(cache=True, inline="always")
 def _score_at(grid, cells, r, ox, oy):  # pragma: no cover - compiled
     """One candidate of :func:`score_candidates`: rotation index *r*, cell offset (*ox*, *oy*)."""
@@ -38,6 +49,29 @@ def _score_at(grid, cells, r, ox, oy):  # pragma: no cover - compiled
         j = min(max(cells[r, p, 1] + oy, 0), W - 1)
         acc += grid[i, j]
     return float(acc) / n / 255.0
+
+
+@njit(cache=True, inline="always")
+def _score_children(grid, cells, r, x, y, half, out):  # pragma: no cover - compiled
+    """:func:`_score_at` of the four children of a block, offsets (x, y), (x, y + half), (x + half, y) and
+    (x + half, y + half), into *out* in that order: one pass over the points for all four (the points'
+    cells are read once; ~1.5× faster than four passes on the loop-closure searches)."""
+    H, W = grid.shape
+    n = cells.shape[1]
+    a0 = a1 = a2 = a3 = 0
+    for p in range(n):
+        cx = cells[r, p, 0] + x
+        cy = cells[r, p, 1] + y
+        i0, i1 = min(max(cx, 0), H - 1), min(max(cx + half, 0), H - 1)
+        j0, j1 = min(max(cy, 0), W - 1), min(max(cy + half, 0), W - 1)
+        a0 += grid[i0, j0]
+        a1 += grid[i0, j1]
+        a2 += grid[i1, j0]
+        a3 += grid[i1, j1]
+    out[0] = float(a0) / n / 255.0
+    out[1] = float(a1) / n / 255.0
+    out[2] = float(a2) / n / 255.0
+    out[3] = float(a3) / n / 255.0
 
 
 @njit(cache=True)
@@ -89,6 +123,7 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
     cb = np.empty(4)
     cx = np.empty(4, np.int64)
     cy = np.empty(4, np.int64)
+    children = np.empty(4)
     while sp > 0:
         sp -= 1
         lv, r, x, y, bound = s_lv[sp], s_r[sp], s_x[sp], s_y[sp], s_b[sp]
@@ -102,13 +137,14 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
             best, best_rot, best_ox, best_oy = bound, r, x, y
             continue
         half = 1 << (lv - 1)
+        _score_children(grids[lv - 1], cells, r, x, y, half, children)
         k = 0
         for dx in range(2):
             for dy in range(2):
                 x2, y2 = x + dx * half, y + dy * half
                 if x2 > w or y2 > w:
                     continue
-                sc = _score_at(grids[lv - 1], cells, r, x2, y2)
+                sc = children[2 * dx + dy]
                 if sc <= best:
                     continue
                 # insertion into cb[:k], ascending

@@ -222,3 +222,21 @@ def test_ambiguity_rejects_too_few_points():
     pyr = C.LikelihoodPyramid(np.array([[0.0, 0.0], [1.0, 0.0]]))
     with pytest.raises(DegenerateInputError):
         C.ambiguity(np.zeros((2, 2)), pyr, np.eye(4), 1.0, 0.9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_likelihood_field_is_the_distance_transforms_field(seed):
+    """The field stamped around the occupied cells equals rint(255·exp(−d²/2σ²)) (0 beyond 3σ) of the Euclidean
+    distance transform of the whole grid, cell for cell (Thrun et al. §6.4)."""
+    from scipy.ndimage import distance_transform_edt
+
+    rng = np.random.default_rng(seed)
+    res = float(rng.choice([0.05, 0.1]))
+    sigma = res * float(rng.choice([1.0, 1.5, 2.0]))
+    points = rng.uniform(0, 3, (int(rng.integers(1, 200)), 2))
+    pyr = C.LikelihoodPyramid(points, res, sigma, levels=2)
+    occupied = np.zeros(pyr.shape, dtype=bool)
+    occupied[tuple(pyr.cells(points).T)] = True
+    d = distance_transform_edt(~occupied) * res
+    expected = np.where(d > 3.0 * sigma, 0, np.rint(np.exp(-0.5 * (d / sigma) ** 2) * 255.0)).astype(np.uint8)
+    assert np.array_equal(pyr.grids[0], expected)
