@@ -23,7 +23,7 @@ $(PY):
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,bench]'
-	$(PY) -m registration.compile_kernels  # compile the numba kernels into their on-disk cache once
+	$(PY) -m slam.compile_kernels  # compile the numba kernels into their on-disk cache once
 	@touch $(STAMP)
 
 install: system-deps $(STAMP)

@@ -190,3 +190,37 @@ def test_a_closure_resets_the_heading_rate():
     # Keyframe 5 is reached through the closure and five one-metre edges: their drift only.
     assert unc.drift_rotation_var[5] == pytest.approx((5 * rate) ** 2)
     assert unc.rotation_var[5] == pytest.approx(1e-6 + 5e-5 + (5 * rate) ** 2)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_sums_up_the_tree_are_each_rows_ancestors_in_the_numpy_forms_order(seed):
+    """The compiled pointer doubling of from_node: each row plus every ancestor's row, bit for bit the numpy
+    form (``acc + where(up != root, acc[up], 0)``, ``up = up[up]``), on random trees with unreached nodes."""
+    from slam.loops.uncertainty import sum_to_root
+
+    rng = np.random.default_rng(seed)
+    K, root = 300, int(rng.integers(0, 300))
+    parent = np.full(K, root)
+    placed = [root]
+    for v in rng.permutation([v for v in range(K) if v != root]):
+        if rng.random() < 0.9:  # the rest hang off nothing (unreached): they point at the root, as from_node's do
+            parent[v] = placed[int(rng.integers(0, len(placed)))]
+            placed.append(int(v))
+    reached = set(placed)
+    acc = rng.random((K, 3)) * 10.0 ** rng.uniform(-6, 2, (K, 3))
+    acc[root] = 0.0
+    up, ref = parent.copy(), acc.copy()
+    while True:
+        nxt = up[up]
+        ref = ref + np.where((up != root)[:, None], ref[up], 0.0)
+        if np.array_equal(nxt, up):
+            break
+        up = nxt
+    got = sum_to_root(acc, parent.astype(np.int64), root)
+    assert got.tobytes() == ref.tobytes()
+    for v in rng.choice(K, 20, replace=False):
+        chain, u = acc[v].copy(), parent[v]
+        while v in reached and u != root:
+            chain += acc[u]
+            u = parent[u]
+        np.testing.assert_allclose(got[v], chain, rtol=1e-12)

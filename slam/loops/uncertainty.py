@@ -38,6 +38,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
@@ -71,6 +72,32 @@ class NodeUncertainty:
         if self.drift_position_var is None or self.drift_rotation_var is None:
             return self
         return NodeUncertainty(self.position_var - self.drift_position_var, self.rotation_var - self.drift_rotation_var)
+
+
+@njit(cache=True)
+def sum_to_root(acc: Array, up: NDArray[np.int64], root: int) -> Array:  # pragma: no cover - compiled
+    """Each row of *acc* ``(K, c)`` summed with the rows of all its ancestors up the tree *up* (each node's
+    parent; the *root*, and nodes hanging off nothing, point at *root*), by pointer doubling: each round
+    adds the row the node points at and then points it at that row's target, until every pointer is at
+    the root (log₂ of the depth rounds; the loop form of ``acc + where(up != root, acc[up], 0)``,
+    ``up = up[up]``, the same additions in the same order)."""
+    K, c = acc.shape
+    up = up.copy()
+    nxt = np.empty_like(up)
+    cur, new = acc.copy(), np.empty_like(acc)
+    while True:
+        settled = True
+        for v in range(K):
+            nxt[v] = up[up[v]]
+            settled = settled and nxt[v] == up[v]
+        for v in range(K):
+            u = up[v]
+            for k in range(c):
+                new[v, k] = cur[v, k] + (cur[u, k] if u != root else 0.0)
+        cur, new = new, cur
+        if settled:
+            return cur
+        up, nxt = nxt, up
 
 
 class RelativeUncertainty:
@@ -199,13 +226,7 @@ class RelativeUncertainty:
         p = pred[idx]
         e = np.searchsorted(pair, self._key(np.minimum(p, idx), np.maximum(p, idx)))
         acc[idx] = np.column_stack([vr[e], ell[e], ell[e] * lever[e]])
-        up = np.where(has, pred, j)
-        while True:
-            nxt = up[up]
-            acc = acc + np.where((up != j)[:, None], acc[up], 0.0)
-            if np.array_equal(nxt, up):
-                break
-            up = nxt
+        acc = sum_to_root(acc, np.where(has, pred, j).astype(np.int64), j)
         dt, dr = self._drift_variance(acc[:, 1], acc[:, 2])
         dt = np.where(reached, np.minimum(dt, limit - pos_var), 0.0)
         dr = np.where(reached, dr, 0.0)
