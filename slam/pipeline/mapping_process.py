@@ -63,6 +63,7 @@ class MappingProcess:
         self.online = self._scans.online
         self._schedule = RecomposeSchedule(config.recompose_every_keyframes)
         self._child = ChildProcess(_serve, (config, planar), "mapping")
+        self._requested = False  # the final map asked for (request_final)
         self.scans_fused = 0
         self.time_s = 0.0
         self.peak_memory_mb = 0.0
@@ -78,9 +79,16 @@ class MappingProcess:
         if self.online and self._schedule.due():
             self._child.send(("recompose", keyframe_poses))
 
+    def request_final(self, keyframe_poses: NDArray) -> None:
+        """Have the child start the final map at *keyframe_poses* now (the caller works on meanwhile);
+        :meth:`finish` with the same poses collects it."""
+        self._child.send(("finish", keyframe_poses))
+        self._requested = True
+
     def finish(self, keyframe_poses: NDArray) -> OccupancyMap | None:
         """The final map at the final keyframe poses (waits for the child)."""
-        self._child.send(("finish", keyframe_poses))
+        if not self._requested:
+            self.request_final(keyframe_poses)
         _, occ, self.scans_fused, self.time_s, self.peak_memory_mb = self._child.receive(wait=True)  # type: ignore[misc]
         self._child.send(None)
         self._child.join()

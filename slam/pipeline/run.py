@@ -138,6 +138,8 @@ class Pipeline:
             t4 = time.perf_counter()
             kf_poses = graph.finish()
             times["final_solve_s"] = time.perf_counter() - t4
+            if isinstance(mapper, MappingProcess):
+                mapper.request_final(kf_poses)  # the map is fused in its process while the self-check runs here
             t7 = time.perf_counter()
             check = self_check(keyframes, kf_poses, graph.loops, planar).as_dict()
             times["self_check_s"] = time.perf_counter() - t7
