@@ -40,8 +40,9 @@ def voxel_keys(points: Array, size: float) -> NDArray[np.int64]:
     if size <= 0 or not np.isfinite(size):
         raise GeometryError(f"voxel size must be positive and finite, got {size}")
     ijk = np.floor(points / size).astype(np.int64)
-    ijk -= G.bounds(ijk)[0]
-    span = G.bounds(ijk)[1] + 1
+    lo, hi = G.bounds(ijk)
+    ijk -= lo
+    span = hi - lo + 1
     if np.prod(span.astype(np.float64)) >= 2.0**62:
         raise GeometryError(f"point extent too large for voxel size {size} m")
     key = ijk[:, 0]
