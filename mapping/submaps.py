@@ -24,6 +24,7 @@ from .config import MappingConfig
 from .fastgpom import FastGPOM
 from .gp import GPHyperparameters
 from .grid import GridGeometry
+from .kernels import add_placed, resample_cells
 
 Array = NDArray[np.float64]
 
@@ -124,24 +125,23 @@ class SubmapFuser:
         rows, cols = self.geometry.window(centre, float(np.max(wc.max(0) - wc.min(0))) / 2 + lg.resolution)
         if rows.stop <= rows.start or cols.stop <= cols.start:
             return empty
-        x, y = self.geometry.window_in_frame(rows, cols, inverse(T))
-        iy, ix = lg.world_to_cell(np.stack([x, y], -1))
-        ok = lg.inside(iy, ix)
-        sel = np.flatnonzero(ok)
-        local = (iy.ravel()[sel] * lg.shape[1] + ix.ravel()[sel]).astype(np.int32)
-        keep = prec.reshape(-1)[local] > 0
-        sel, local = sel[keep], local[keep]
-        w = cols.stop - cols.start
-        g = (rows.start + sel // w) * self.geometry.shape[1] + cols.start + sel % w
+        A = inverse(T)  # anchor_T_world: the window's cell centres into the submap's frame
+        wg = self.geometry
+        g, local = resample_cells(rows.start, cols.start, rows.stop - rows.start, cols.stop - cols.start,
+                                  wg.shape[1], wg.origin[0], wg.origin[1], wg.resolution,
+                                  A[0, 0], A[0, 1], A[1, 0], A[1, 1], A[0, 3], A[1, 3],
+                                  lg.origin[0], lg.origin[1], lg.resolution, prec)
         # 8 bytes per placed cell, not 24 (indices and two float64 values): a few hundred submaps
         # hold most of a gigabyte of placed values otherwise.
         return g.astype(np.int32 if self.info.size < 2**31 else np.int64), local
 
     def _add(self, sm: Submap, sign: float) -> None:
         """Add (+1) or subtract (−1) the placed contribution of *sm* to the global grid."""
-        g, info, prec = self.placed_values(sm.key)
-        self.info.reshape(-1)[g] += sign * info  # placed cells are unique: fancy += is exact
-        self.prec.reshape(-1)[g] += sign * prec
+        if sm.placed is None:
+            return
+        g, local = sm.placed
+        grid = sm.mapper.grid
+        add_placed(self.info.reshape(-1), self.prec.reshape(-1), g, local, grid.info.reshape(-1), grid.prec.reshape(-1), sign)
 
     def _unplace(self, sm: Submap) -> None:
         if sm.placed is not None:

@@ -139,3 +139,63 @@ def test_sealed_submaps_keep_the_map_and_leave_no_residue():
     f, T = scans[0]
     sealed.add_scan(0, f, T)
     assert sealed.submaps[0].mapper.grid.prec.dtype == np.float64
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_resampling_kernel_is_the_numpy_forms_cells_bit_for_bit(dtype):
+    """The compiled resampling of a submap onto the world grid picks, for every world cell of the window, the
+    submap cell that ``GridGeometry.window_in_frame`` + ``world_to_cell`` + ``inside`` pick (observed cells
+    only), in the same order: random anchors, windows partly outside the submap, cell centres on cell borders."""
+    from core.geometry import inverse
+    from mapping.grid import GridGeometry
+    from mapping.kernels import resample_cells
+
+    rng = np.random.default_rng(7)
+    world = GridGeometry((-12.35, 3.1), 0.05, (400, 500))
+    sub = GridGeometry((-4.0, -4.0), 0.05, (160, 160))
+    for k in range(40):
+        prec = (rng.random(sub.shape) < 0.3).astype(dtype) * rng.random(sub.shape).astype(dtype)
+        # quarter turns put centres exactly on the submap's cell borders; the rest at random headings
+        theta = (k % 4) * np.pi / 2 if k < 8 else rng.uniform(-np.pi, np.pi)
+        T = xytheta_to_matrix(np.array([rng.uniform(-10, 10), rng.uniform(5, 20), theta]))
+        rows, cols = world.window(T[:2, 3], rng.uniform(2, 8))
+        A = inverse(T)
+        x, y = world.window_in_frame(rows, cols, A)
+        iy, ix = sub.world_to_cell(np.stack([x, y], -1))
+        sel = np.flatnonzero(sub.inside(iy, ix))
+        want_local = (iy.ravel()[sel] * sub.shape[1] + ix.ravel()[sel]).astype(np.int32)
+        keep = prec.reshape(-1)[want_local] > 0
+        sel, want_local = sel[keep], want_local[keep]
+        w = cols.stop - cols.start
+        want_g = (rows.start + sel // w) * world.shape[1] + cols.start + sel % w
+        g, local = resample_cells(rows.start, cols.start, rows.stop - rows.start, w, world.shape[1],
+                                  world.origin[0], world.origin[1], world.resolution, A[0, 0], A[0, 1], A[1, 0],
+                                  A[1, 1], A[0, 3], A[1, 3], sub.origin[0], sub.origin[1], sub.resolution, prec)
+        assert len(want_g) > 0
+        np.testing.assert_array_equal(g, want_g)
+        np.testing.assert_array_equal(local, want_local)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_adding_a_placed_contribution_is_numpys_fancy_add_bit_for_bit(dtype):
+    """The compiled add / subtract of a placed submap equals numpy's ``flat[g] += sign · values[local]`` over
+    unique cells, for open (float64) and sealed (float32) submap grids; adding then subtracting restores the
+    global grid exactly where it held sums of such values (here: zeros)."""
+    from mapping.kernels import add_placed
+
+    rng = np.random.default_rng(3)
+    g = rng.permutation(5000)[:1200].astype(np.int32)
+    local = rng.integers(0, 900, 1200).astype(np.int32)
+    sub_info, sub_prec = rng.normal(size=900).astype(dtype), rng.random(900).astype(dtype)
+    info, prec = rng.normal(size=5000), rng.random(5000)
+    want_info, want_prec = info.copy(), prec.copy()
+    for sign in (1.0, -1.0):
+        want_info[g] += sign * sub_info[local]
+        want_prec[g] += sign * sub_prec[local]
+        add_placed(info, prec, g, local, sub_info, sub_prec, sign)
+        np.testing.assert_array_equal(info, want_info)
+        np.testing.assert_array_equal(prec, want_prec)
+    zero_info, zero_prec = np.zeros(5000), np.zeros(5000)
+    add_placed(zero_info, zero_prec, g, local, sub_info, sub_prec, 1.0)
+    add_placed(zero_info, zero_prec, g, local, sub_info, sub_prec, -1.0)
+    assert not zero_info.any() and not zero_prec.any()
