@@ -24,7 +24,6 @@ from .config import MappingConfig
 from .fastgpom import FastGPOM
 from .gp import GPHyperparameters
 from .grid import GridGeometry
-from .kernels import add_placed, resample_cells
 
 Array = NDArray[np.float64]
 
@@ -125,6 +124,8 @@ class SubmapFuser:
         rows, cols = self.geometry.window(centre, float(np.max(wc.max(0) - wc.min(0))) / 2 + lg.resolution)
         if rows.stop <= rows.start or cols.stop <= cols.start:
             return empty
+        from .kernels import resample_cells  # numba only where maps are fused (docs/ARCHITECTURE.md)
+
         A = inverse(T)  # anchor_T_world: the window's cell centres into the submap's frame
         wg = self.geometry
         g, local = resample_cells(rows.start, cols.start, rows.stop - rows.start, cols.stop - cols.start,
@@ -137,11 +138,14 @@ class SubmapFuser:
 
     def _add(self, sm: Submap, sign: float) -> None:
         """Add (+1) or subtract (−1) the placed contribution of *sm* to the global grid."""
+        from .kernels import add_placed
+
         if sm.placed is None:
             return
         g, local = sm.placed
         grid = sm.mapper.grid
-        add_placed(self.info.reshape(-1), self.prec.reshape(-1), g, local, grid.info.reshape(-1), grid.prec.reshape(-1), sign)
+        add_placed(self.info.reshape(-1), self.prec.reshape(-1), g, local,
+                   grid.info.reshape(-1), grid.prec.reshape(-1), sign)
 
     def _unplace(self, sm: Submap) -> None:
         if sm.placed is not None:
