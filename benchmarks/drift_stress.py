@@ -17,6 +17,10 @@ self-check's verdict with its contradicting keyframes. Prints one JSON object.
 
     .venv/bin/python benchmarks/drift_stress.py LOG:RELATIONS [LOG:RELATIONS ...] [--bias 0 0.1 0.3] [--bend 10] [--no-reference]
 
+A log given without relations is scored against the true poses its frames carry (a simulated one, e.g. the
+rings `benchmarks/rings.py --dir DIR` leaves in DIR): the APE of every scan after an SE(d) alignment and the
+closures wrong by more than 0.2 m or 1° against the truth, instead of the relation error.
+
 ``--bend``: besides the constant biases, one leg bent — a 100 m stretch of path from a third of the way along
 turned by so many degrees in all, the rest as measured (the held-out log's west leg turned by ~10°).
 ``--jump-m`` / ``--jump-deg``: one odometry edge (registration and wheel alike, 40 % of the way through the
@@ -43,6 +47,8 @@ sys.path.insert(0, str(REPO))
 
 from core import geometry as G  # noqa: E402
 from core.trajectory import Trajectory  # noqa: E402
+from evaluation.ape_rpe import evaluate_ape  # noqa: E402
+from evaluation.loops import LoopEdges, score_against_truth  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import SlamConfig  # noqa: E402
@@ -89,14 +95,28 @@ def jumped(record: FrontEndRecord, along_m: float = 0.0, heading_deg: float = 0.
     return dataclasses.replace(record, edges=move(record.edges), wheel_edges=move(record.wheel_edges))
 
 
-def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, reference: bool,
+def against_truth(record: FrontEndRecord, keyframe_poses: np.ndarray, loops: list) -> dict:
+    """For a log whose frames carry their true pose (a simulated one): the APE of every scan's pose after an
+    SE(d) alignment (Umeyama), and the closures the true poses violate by more than 0.2 m or 1° (Hess et al. 2016)."""
+    est = Trajectory(record.stamps, record.scan_poses(keyframe_poses))
+    ape = evaluate_ape(est, Trajectory(record.stamps, record.ground_truth), align="se3")
+    edges = LoopEdges(np.array([lc.i for lc in loops], np.int64), np.array([lc.j for lc in loops], np.int64),
+                      np.array([lc.measurement for lc in loops]).reshape(-1, 4, 4))
+    truth = score_against_truth(edges, record.keyframe_ground_truth)
+    return {"ape_rmse_m": round(float(ape.stats["rmse"]), 4), "wrong_closures": truth.n_loops - truth.n_true_positive}
+
+
+def stress(log: Path, relations: Path | None, biases: list[float], config: SlamConfig, reference: bool,
            bends: list[float] = (), jumps_m: list[float] = (), jumps_deg: list[float] = ()) -> dict:
     """Per bias (``bias``) and per bend (``bend``), the default configuration and, with *reference*, the same
-    without the loop closer's heading-rate term (``…_without_heading_rate``), replayed on one recording."""
+    without the loop closer's heading-rate term (``…_without_heading_rate``), replayed on one recording.
+    Scored against the *relations*, or without them against the frames' true poses."""
     t0 = time.perf_counter()
     record = record_front_end(open_log(log).frames(), config)
     out: dict = {"keyframes": len(record.keyframes), "front_end_s": round(time.perf_counter() - t0, 1), "bias": {}}
-    rel = read_relations(relations)
+    if relations is None and record.ground_truth is None:
+        sys.exit(f"{log}: no relations file given and its frames carry no ground truth: nothing to score against")
+    rel = read_relations(relations) if relations is not None else None
     variants = [("", config.loops)]
     if reference:
         variants.append(("_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
@@ -109,12 +129,17 @@ def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, 
             key = kind + suffix
             out.setdefault(key, {})
             rep = replay_loops(perturbed(), loops, config.backend)
-            rr = evaluate_relations(Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses)), rel)
+            if rel is not None:
+                rr = evaluate_relations(Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses)), rel)
+                scores = {"relation_error_m": round(float(rr.trans_mean), 4),
+                          "relation_error_deg": round(float(rr.rot_mean_deg), 3)}
+            else:
+                scores = against_truth(record, rep.keyframe_poses, rep.loops)
             st = rep.stats
             acc = int(st.get("accepted", 0) + st.get("accepted_as_group", 0))
             sc = self_check(record.keyframes, rep.keyframe_poses, rep.loops, record.planar)
             out[key][name] = {
-                "relation_error_m": round(float(rr.trans_mean), 4), "relation_error_deg": round(float(rr.rot_mean_deg), 3),
+                **scores,
                 "closures_accepted": acc, "pruned": int(st.get("pruned", 0)),
                 "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
                 "global_searches": int(st.get("global_searches", 0)),
@@ -127,7 +152,8 @@ def stress(log: Path, relations: Path, biases: list[float], config: SlamConfig, 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", nargs="*", help="LOG:RELATIONS")
+    ap.add_argument("runs", nargs="*", help="LOG:RELATIONS, or LOG alone when its frames carry their true pose "
+                                            "(a simulated log: scored by APE and closures wrong against the truth)")
     ap.add_argument("--bias", type=float, nargs="*", default=[0.0, 0.1, 0.3], help="heading bias [deg per m travelled]")
     ap.add_argument("--bend", type=float, nargs="*", default=[], help="also: one 100 m stretch (from a third of the path) turned by this many degrees")
     ap.add_argument("--jump-m", type=float, nargs="*", default=[], help="also: one odometry edge off by this many metres along its step")
@@ -139,9 +165,9 @@ def main() -> None:
     config = SlamConfig()
     result = {"bias_deg_per_m": args.bias, "bend_deg": args.bend, "jump_m": args.jump_m, "jump_deg": args.jump_deg, "logs": {}}
     for p in pairs:
-        log, rel = p.rsplit(":", 1)
-        result["logs"][Path(log).name] = stress(Path(log), Path(rel), args.bias, config, not args.no_reference, args.bend,
-                                                args.jump_m, args.jump_deg)
+        log, rel = p.rsplit(":", 1) if ":" in p else (p, None)
+        result["logs"][Path(log).name] = stress(Path(log), Path(rel) if rel else None, args.bias, config,
+                                                not args.no_reference, args.bend, args.jump_m, args.jump_deg)
     print(json.dumps(result, indent=1))
 
 
