@@ -48,11 +48,11 @@ sys.path.insert(0, str(REPO))
 from core import geometry as G  # noqa: E402
 from core.trajectory import Trajectory  # noqa: E402
 from evaluation.ape_rpe import evaluate_ape  # noqa: E402
-from evaluation.loops import LoopEdges, score_against_truth  # noqa: E402
+from evaluation.loops import LoopEdges, loop_edges_from_graph, score_against_truth  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import SlamConfig  # noqa: E402
-from slam.pipeline.loop_replay import FrontEndRecord, record_front_end, replay_loops  # noqa: E402
+from slam.pipeline.loop_replay import FrontEndRecord, LoopReplay, record_front_end, replay_loops  # noqa: E402
 from slam.pipeline.self_check import self_check  # noqa: E402
 
 
@@ -95,15 +95,20 @@ def jumped(record: FrontEndRecord, along_m: float = 0.0, heading_deg: float = 0.
     return dataclasses.replace(record, edges=move(record.edges), wheel_edges=move(record.wheel_edges))
 
 
-def against_truth(record: FrontEndRecord, keyframe_poses: np.ndarray, loops: list) -> dict:
+def against_truth(record: FrontEndRecord, rep: LoopReplay) -> dict:
     """For a log whose frames carry their true pose (a simulated one): the APE of every scan's pose after an
-    SE(d) alignment (Umeyama), and the closures the true poses violate by more than 0.2 m or 1° (Hess et al. 2016)."""
-    est = Trajectory(record.stamps, record.scan_poses(keyframe_poses))
+    SE(d) alignment (Umeyama), and the closures the true poses violate by more than 0.2 m or 1° (Hess et al.
+    2016) — of those the final graph kept (``wrong_closures``, as ``slam eval loops --gt`` counts a run's) and
+    of every one the loop closer accepted, the pruned included (``wrong_closures_accepted``)."""
+    est = Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses))
     ape = evaluate_ape(est, Trajectory(record.stamps, record.ground_truth), align="se3")
-    edges = LoopEdges(np.array([lc.i for lc in loops], np.int64), np.array([lc.j for lc in loops], np.int64),
-                      np.array([lc.measurement for lc in loops]).reshape(-1, 4, 4))
-    truth = score_against_truth(edges, record.keyframe_ground_truth)
-    return {"ape_rmse_m": round(float(ape.stats["rmse"]), 4), "wrong_closures": truth.n_loops - truth.n_true_positive}
+    gt = record.keyframe_ground_truth
+    kept = score_against_truth(loop_edges_from_graph(rep.backend.graph), gt)
+    accepted = score_against_truth(LoopEdges(np.array([lc.i for lc in rep.loops], np.int64),
+                                             np.array([lc.j for lc in rep.loops], np.int64),
+                                             np.array([lc.measurement for lc in rep.loops]).reshape(-1, 4, 4)), gt)
+    return {"ape_rmse_m": round(float(ape.stats["rmse"]), 4), "wrong_closures": kept.n_loops - kept.n_true_positive,
+            "wrong_closures_accepted": accepted.n_loops - accepted.n_true_positive}
 
 
 def stress(log: Path, relations: Path | None, biases: list[float], config: SlamConfig, reference: bool,
@@ -134,7 +139,7 @@ def stress(log: Path, relations: Path | None, biases: list[float], config: SlamC
                 scores = {"relation_error_m": round(float(rr.trans_mean), 4),
                           "relation_error_deg": round(float(rr.rot_mean_deg), 3)}
             else:
-                scores = against_truth(record, rep.keyframe_poses, rep.loops)
+                scores = against_truth(record, rep)
             st = rep.stats
             acc = int(st.get("accepted", 0) + st.get("accepted_as_group", 0))
             sc = self_check(record.keyframes, rep.keyframe_poses, rep.loops, record.planar)
