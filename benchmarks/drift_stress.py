@@ -48,7 +48,7 @@ sys.path.insert(0, str(REPO))
 from core import geometry as G  # noqa: E402
 from core.trajectory import Trajectory  # noqa: E402
 from evaluation.ape_rpe import evaluate_ape  # noqa: E402
-from evaluation.loops import LoopEdges, loop_edges_from_graph, score_against_truth  # noqa: E402
+from evaluation.loops import loop_edges_from_closures, loop_edges_from_graph, score_against_truth  # noqa: E402
 from evaluation.relations import evaluate_relations, read_relations  # noqa: E402
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import SlamConfig  # noqa: E402
@@ -104,9 +104,7 @@ def against_truth(record: FrontEndRecord, rep: LoopReplay) -> dict:
     ape = evaluate_ape(est, Trajectory(record.stamps, record.ground_truth), align="se3")
     gt = record.keyframe_ground_truth
     kept = score_against_truth(loop_edges_from_graph(rep.backend.graph), gt)
-    accepted = score_against_truth(LoopEdges(np.array([lc.i for lc in rep.loops], np.int64),
-                                             np.array([lc.j for lc in rep.loops], np.int64),
-                                             np.array([lc.measurement for lc in rep.loops]).reshape(-1, 4, 4)), gt)
+    accepted = score_against_truth(loop_edges_from_closures(rep.loops), gt)
     return {"ape_rmse_m": round(float(ape.stats["rmse"]), 4), "wrong_closures": kept.n_loops - kept.n_true_positive,
             "wrong_closures_accepted": accepted.n_loops - accepted.n_true_positive}
 

@@ -24,7 +24,7 @@ from core import geometry as geo
 
 Array = NDArray[np.float64]
 
-__all__ = ["LoopEdges", "LoopScore", "TruthScore", "loop_edges_from_graph", "constraint_violations", "score_loops",
+__all__ = ["LoopEdges", "LoopScore", "TruthScore", "loop_edges_from_graph", "loop_edges_from_closures", "constraint_violations", "score_loops",
            "true_revisits", "score_against_truth"]
 
 TRANS_TOL = 0.20  # m, Hess et al. 2016
@@ -93,6 +93,12 @@ def loop_edges_from_graph(graph) -> LoopEdges:  # graph: slam.graph.PoseGraph
     a = graph.edge_arrays()
     m = np.array(graph.edge_kinds, dtype=object) == "loop"
     return LoopEdges(a.ii[m].copy(), a.jj[m].copy(), a.measurements[m].copy())
+
+
+def loop_edges_from_closures(closures) -> LoopEdges:  # closures: slam.loops.types.LoopClosure (i, j, measurement)
+    """Closures with keyframe ids ``i``, ``j`` (= node indices) and measurements ``i_T_j`` as :class:`LoopEdges`."""
+    return LoopEdges(np.array([lc.i for lc in closures], np.int64), np.array([lc.j for lc in closures], np.int64),
+                     np.array([lc.measurement for lc in closures], float).reshape(-1, 4, 4))
 
 
 def constraint_violations(loops: LoopEdges, poses: Array) -> tuple[Array, Array]:

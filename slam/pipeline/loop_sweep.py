@@ -31,7 +31,7 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from core.errors import ConfigError
-from evaluation.loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, score_against_truth, score_loops
+from evaluation.loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, loop_edges_from_closures, score_against_truth, score_loops
 
 from .config import LoopConfig, SlamConfig
 
@@ -166,9 +166,7 @@ def sweep_grid(base: M, sweeps: Iterable[Sweep]) -> list[tuple[dict[str, float |
 
 def _loop_edges(replay) -> LoopEdges:  # replay: slam.pipeline.loop_replay.LoopReplay
     """Every accepted closure as :class:`LoopEdges` (keyframe id = node index)."""
-    L = replay.loops
-    return LoopEdges(np.array([lc.i for lc in L], np.int64), np.array([lc.j for lc in L], np.int64),
-                     np.array([lc.measurement for lc in L], float).reshape(-1, 4, 4))
+    return loop_edges_from_closures(replay.loops)
 
 
 def _nan_to_none(v: object) -> object:
