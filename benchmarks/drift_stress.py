@@ -99,13 +99,15 @@ def against_truth(record: FrontEndRecord, rep: LoopReplay) -> dict:
     """For a log whose frames carry their true pose (a simulated one): the APE of every scan's pose after an
     SE(d) alignment (Umeyama), and the closures the true poses violate by more than 0.2 m or 1° (Hess et al.
     2016) — of those the final graph kept (``wrong_closures``, as ``slam eval loops --gt`` counts a run's) and
-    of every one the loop closer accepted, the pruned included (``wrong_closures_accepted``)."""
+    of every one the loop closer accepted, the pruned included (``wrong_closures_accepted``); of the kept, those
+    that measured another place (``gross_wrong_closures``: beyond the revisit radius or 5°)."""
     est = Trajectory(record.stamps, record.scan_poses(rep.keyframe_poses))
     ape = evaluate_ape(est, Trajectory(record.stamps, record.ground_truth), align="se3")
     gt = record.keyframe_ground_truth
     kept = score_against_truth(loop_edges_from_graph(rep.backend.graph), gt)
     accepted = score_against_truth(loop_edges_from_closures(rep.loops), gt)
     return {"ape_rmse_m": round(float(ape.stats["rmse"]), 4), "wrong_closures": kept.n_loops - kept.n_true_positive,
+            "gross_wrong_closures": int(kept.gross.sum()),
             "wrong_closures_accepted": accepted.n_loops - accepted.n_true_positive}
 
 

@@ -29,6 +29,7 @@ __all__ = ["LoopEdges", "LoopScore", "TruthScore", "loop_edges_from_graph", "loo
 
 TRANS_TOL = 0.20  # m, Hess et al. 2016
 ROT_TOL_DEG = 1.0  # deg, Hess et al. 2016
+GROSS_ROT_DEG = 5.0  # deg: a closure turned this far measured another place (or a mirror of it), not this one imprecisely
 
 
 @dataclass(frozen=True)
@@ -79,12 +80,25 @@ class TruthScore:
     true_positive: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))  # (M,)
     revisit_nodes: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     settings: dict[str, float] = field(default_factory=dict)
+    trans_error_m: Array = field(default_factory=lambda: np.zeros(0))  # (M,) each closure against the truth
+    rot_error_deg: Array = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def gross(self) -> NDArray[np.bool_]:
+        """Closures that measured another place, not this one imprecisely: off the truth by more than the
+        revisit radius or ``GROSS_ROT_DEG`` (a closure 1.2° off fails the 1° criterion; one 3 m off is an alias)."""
+        return (self.trans_error_m > self.settings.get("revisit_radius_m", np.inf)) | (self.rot_error_deg > GROSS_ROT_DEG)
 
     def to_dict(self) -> dict[str, object]:
+        def spread(v: Array) -> dict[str, float]:
+            return {k: float(np.percentile(v, q)) for k, q in (("p50", 50), ("p90", 90), ("max", 100))} if len(v) else {}
+
         return {
             "n_loops": self.n_loops, "n_true_positive": self.n_true_positive, "precision": self.precision,
+            "n_gross": int(self.gross.sum()),
             "n_revisit_nodes": self.n_revisit_nodes, "n_revisit_nodes_found": self.n_revisit_nodes_found,
-            "recall": self.recall, **self.settings,
+            "recall": self.recall, "trans_error_m": spread(self.trans_error_m),
+            "rot_error_deg": spread(self.rot_error_deg), **self.settings,
         }
 
 
@@ -154,5 +168,5 @@ def score_against_truth(
         n, int(tp.sum()), float(tp.mean()) if n else float("nan"), int(len(revisit)), int(len(found)),
         float(len(found) / len(revisit)) if len(revisit) else float("nan"), tp, revisit,
         {"revisit_radius_m": revisit_radius, "min_separation": min_separation, "trans_tol_m": trans_tol,
-         "rot_tol_deg": rot_tol_deg},
+         "rot_tol_deg": rot_tol_deg}, tv, rv,
     )

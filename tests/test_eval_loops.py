@@ -72,3 +72,21 @@ def test_truth_precision_and_recall_known_answer():
     s = score_against_truth(loop_edges_from_graph(g), gt, revisit_radius=0.3, min_separation=10)
     assert s.n_loops == 25 and s.n_true_positive == 20 and s.precision == pytest.approx(0.8)
     assert s.n_revisit_nodes == 40 and s.n_revisit_nodes_found == 20 and s.recall == pytest.approx(0.5)
+
+
+def test_truth_errors_tell_an_imprecise_closure_from_a_gross_one():
+    """Closures off the truth by known amounts: exact ones, 1.2° ones (wrong by the 1° criterion, right place),
+    1.5 m and 10° ones (gross: beyond the revisit radius or 5°). The errors are the corruptions, and only the
+    last two kinds are gross."""
+    gt = _two_laps()
+    kinds = [np.eye(4)] * 6 + [geo.xytheta_to_matrix(0.05, 0, np.radians(1.2))] * 3 \
+        + [geo.xytheta_to_matrix(1.5, 0, 0)] * 2 + [geo.xytheta_to_matrix(0, 0, np.radians(10.0))]
+    g = _graph(gt, [(j, j + N_LAP, c) for j, c in enumerate(kinds)])
+    s = score_against_truth(loop_edges_from_graph(g), gt, revisit_radius=1.0, min_separation=10)
+    np.testing.assert_allclose(s.trans_error_m, [0.0] * 6 + [0.05] * 3 + [1.5] * 2 + [0.0], atol=1e-9)
+    np.testing.assert_allclose(s.rot_error_deg, [0.0] * 6 + [1.2] * 3 + [0.0] * 2 + [10.0], atol=1e-7)
+    assert s.n_true_positive == 6
+    assert s.gross.tolist() == [False] * 9 + [True] * 3
+    d = s.to_dict()
+    assert d["n_gross"] == 3 and d["trans_error_m"]["max"] == pytest.approx(1.5)
+    assert d["rot_error_deg"]["p50"] == pytest.approx(0.0, abs=1e-7) and d["rot_error_deg"]["max"] == pytest.approx(10.0)
