@@ -9,8 +9,8 @@ scan. This benchmark simulates each seed (or reuses the logs already in ``--dir`
 when by more than the 1 m revisit radius or 5°, i.e. it measured another place) and prints one JSON
 summary: per ring the APE of the estimate and of the front end alone (SE(2)-aligned, every scan), the
 closures, the wrong and the gross ones and the spread of their heading errors, recall of the true
-revisits, the self-check's verdict; and the
-sums over the rings, the figures a change to loop closure must not make worse.
+revisits, the self-check's verdict; and the sums over the rings, the figures a change to loop closure
+must not make worse.
 
     .venv/bin/python benchmarks/rings.py [--seeds 1 2 3] [--sensor sick_lms] [--dir DIR] [--out FILE]
 

@@ -87,6 +87,7 @@ def test_loops_cli_with_ground_truth(tmp_path):
     assert p["loops"] == "10" and float(p["precision"]) == pytest.approx(0.8)
     assert float(p["gt_precision"]) == pytest.approx(0.8) and p["gt_revisit_nodes"] == "30"
     assert float(p["gt_recall"]) == pytest.approx(8 / 30)
+    assert p["gt_gross"] == "2"  # the two closures 0.5 m off lie beyond the 0.3 m revisit radius: another place
 
 
 def test_g2o_estimate_with_stamp_file_equals_tum(tmp_path, rng):

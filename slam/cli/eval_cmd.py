@@ -225,7 +225,7 @@ def loops_cmd(
             raise InputFileError(gt, None, f"no node comes back within --revisit-radius {revisit_radius} m of one at "
                                  f"least --min-separation {min_separation} nodes earlier: recall is undefined")
         out["truth"] = t.to_dict()
-        echo_pairs({"gt_true_positive": t.n_true_positive, "gt_precision": t.precision,
+        echo_pairs({"gt_true_positive": t.n_true_positive, "gt_precision": t.precision, "gt_gross": int(t.gross.sum()),
                      "gt_revisit_nodes": t.n_revisit_nodes, "gt_recall": t.recall})
     save_json(json_out, out)
 
