@@ -164,6 +164,7 @@ def main() -> None:
     ap.add_argument("--jump-m", type=float, nargs="*", default=[], help="also: one odometry edge off by this many metres along its step")
     ap.add_argument("--jump-deg", type=float, nargs="*", default=[], help="also: one odometry edge turned by this many degrees")
     ap.add_argument("--no-reference", action="store_true", help="skip the replays without the heading-rate term")
+    ap.add_argument("--out", type=Path, default=None, help="also write the JSON here (as benchmarks/rings.py does)")
     args = ap.parse_args()
     pairs = args.runs or [f"{REPO}/data/intel.clf.bz2:{REPO}/data/intel.relations",
                           f"{REPO}/data/mit-csail.clf.bz2:{REPO}/data/mit-csail.relations"]
@@ -173,7 +174,10 @@ def main() -> None:
         log, rel = p.rsplit(":", 1) if ":" in p else (p, None)
         result["logs"][Path(log).name] = stress(Path(log), Path(rel) if rel else None, args.bias, config,
                                                 not args.no_reference, args.bend, args.jump_m, args.jump_deg)
-    print(json.dumps(result, indent=1))
+    text = json.dumps(result, indent=1)
+    if args.out is not None:
+        args.out.write_text(text + "\n")
+    print(text)
 
 
 if __name__ == "__main__":
