@@ -53,6 +53,7 @@ from evaluation.relations import evaluate_relations, read_relations  # noqa: E40
 from slam.logs import open_log  # noqa: E402
 from slam.pipeline.config import SlamConfig  # noqa: E402
 from slam.pipeline.loop_replay import FrontEndRecord, LoopReplay, record_front_end, replay_loops  # noqa: E402
+from slam.cli.eval_io import check_json, save_json  # noqa: E402
 from slam.pipeline.self_check import self_check  # noqa: E402
 
 
@@ -166,6 +167,7 @@ def main() -> None:
     ap.add_argument("--no-reference", action="store_true", help="skip the replays without the heading-rate term")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here (as benchmarks/rings.py does)")
     args = ap.parse_args()
+    check_json(args.out)
     pairs = args.runs or [f"{REPO}/data/intel.clf.bz2:{REPO}/data/intel.relations",
                           f"{REPO}/data/mit-csail.clf.bz2:{REPO}/data/mit-csail.relations"]
     config = SlamConfig()
@@ -174,10 +176,8 @@ def main() -> None:
         log, rel = p.rsplit(":", 1) if ":" in p else (p, None)
         result["logs"][Path(log).name] = stress(Path(log), Path(rel) if rel else None, args.bias, config,
                                                 not args.no_reference, args.bend, args.jump_m, args.jump_deg)
-    text = json.dumps(result, indent=1)
-    if args.out is not None:
-        args.out.write_text(text + "\n")
-    print(text)
+    save_json(args.out, result)
+    print(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":

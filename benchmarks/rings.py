@@ -29,6 +29,9 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from slam.cli.eval_io import check_json, save_json  # noqa: E402
 
 
 def _slam(*args: str) -> None:
@@ -84,16 +87,15 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, default=None, help="keep the logs and runs here (reused logs are not simulated again)")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = ap.parse_args()
+    check_json(args.out)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.dir or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
         rows = [ring(seed, args.sensor, folder) for seed in args.seeds]
     result = {"summary": summarise(rows), "rings": rows, "runtime_s": time.perf_counter() - t0}
-    text = json.dumps(result, indent=1)
-    if args.out is not None:
-        args.out.write_text(text + "\n")
-    print(text)
+    save_json(args.out, result)
+    print(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":
