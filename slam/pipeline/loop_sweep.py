@@ -31,7 +31,7 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from core.errors import ConfigError
-from evaluation.loops import ROT_TOL_DEG, TRANS_TOL, LoopEdges, loop_edges_from_closures, score_against_truth, score_loops
+from evaluation.loops import ROT_TOL_DEG, TRANS_TOL, loop_edges_from_closures, score_against_truth, score_loops
 
 from .config import LoopConfig, SlamConfig
 
@@ -164,11 +164,6 @@ def sweep_grid(base: M, sweeps: Iterable[Sweep]) -> list[tuple[dict[str, float |
     return grid
 
 
-def _loop_edges(replay) -> LoopEdges:  # replay: slam.pipeline.loop_replay.LoopReplay
-    """Every accepted closure as :class:`LoopEdges` (keyframe id = node index)."""
-    return loop_edges_from_closures(replay.loops)
-
-
 def _nan_to_none(v: object) -> object:
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
@@ -291,7 +286,7 @@ def score_setting(
 
     gt_kf = rec.keyframe_ground_truth
     rep = replay_loops(rec, loop_cfg, backend)
-    edges = _loop_edges(rep)
+    edges = loop_edges_from_closures(rep.loops)  # keyframe id = node index
     self_score = score_loops(edges, rep.keyframe_poses)
     row: dict[str, object] = dict(setting)
     row["accepted"] = len(edges)
