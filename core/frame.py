@@ -31,6 +31,8 @@ class Frame:
         ranges: 2D laser only, ``(B,)`` measured ranges (m); ``inf`` where the beam had no return.
         no_return: 2D laser only, ``(B,)`` bool, True where the beam returned nothing (max range
             or ``inf``): free space along the whole beam up to ``max_range``.
+        beam_times: 2D laser only, ``(B,)`` when each beam was measured, seconds after ``stamp``
+            (ROS ``LaserScan.time_increment``), or None when the log does not say.
         odom: wheel-odometry pose of the robot base ``odom_T_base`` at ``stamp``, if the log has it.
         ground_truth: ground-truth pose ``world_T_base`` (simulated logs, KITTI), if known.
         base_T_sensor: pose of the sensor on the robot base (identity when unknown).
@@ -45,6 +47,7 @@ class Frame:
     angles: Array | None = None
     ranges: Array | None = None
     no_return: NDArray[np.bool_] | None = None
+    beam_times: Array | None = None
     odom: Array | None = None
     ground_truth: Array | None = None
     base_T_sensor: Array = field(default_factory=lambda: np.eye(4))
@@ -66,6 +69,11 @@ class Frame:
             object.__setattr__(self, "ranges", r)
             object.__setattr__(self, "angles", a)
             object.__setattr__(self, "no_return", nr)
+        if self.beam_times is not None:
+            t = np.asarray(self.beam_times, dtype=np.float64)
+            if self.ranges is None or t.shape != self.ranges.shape or not np.all(np.isfinite(t)):
+                raise GeometryError(f"{self.source or 'frame'}: beam_times must be finite, one per beam")
+            object.__setattr__(self, "beam_times", t)
 
     @property
     def dim(self) -> int:

@@ -24,7 +24,8 @@ def _ros1_store():
     return ts
 
 
-def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False, compression=None, chunk_threshold=None):
+def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False, compression=None, chunk_threshold=None,
+              time_increment=0.0, scan_time=0.0):
     """A ROS 1 bag with /scan (LaserScan), /odom (Odometry), /tf_static (mount) and optionally /points
     (chunks *compression* ``"bz2"``/``"lz4"`` when given, of about *chunk_threshold* bytes)."""
     from rosbags.rosbag1 import Writer
@@ -74,7 +75,8 @@ def write_bag(path, n=20, *, mount=None, nan_at=None, with_cloud=False, compress
             written.append((t, r, odom))
             scan = Ty["sensor_msgs/msg/LaserScan"](
                 header=hdr(t, "laser"), angle_min=-np.pi / 2, angle_max=np.pi / 2, angle_increment=np.pi / 180,
-                time_increment=0.0, scan_time=0.0, range_min=0.1, range_max=6.5, ranges=r, intensities=np.zeros(0, np.float32),
+                time_increment=time_increment, scan_time=scan_time, range_min=0.1, range_max=6.5, ranges=r,
+                intensities=np.zeros(0, np.float32),
             )
             w.write(cs, int(round(t * 1e9)), ts.serialize_ros1(scan, "sensor_msgs/msg/LaserScan"))
             cov = Ty["geometry_msgs/msg/PoseWithCovariance"](pose=pose_msg(odom), covariance=np.zeros(36))
@@ -132,6 +134,21 @@ def test_written_bag_round_trip(tmp_path):
         np.testing.assert_allclose(f.base_T_sensor, mount, atol=1e-12)
     inf = r.info()
     assert (inf.format, inf.scans, inf.beams_per_scan, inf.has_odometry) == ("ros1", 20, 180, True)
+
+
+def test_beam_times_from_time_increment(tmp_path):
+    """A LaserScan's ``time_increment`` gives each beam's time after the stamp (i·increment, REP-117),
+    which the front end deskews with; a driver that leaves it 0, or states a sweep longer than its own
+    ``scan_time``, gives none."""
+    inc = 1.0 / 75 / 360  # a SICK LMS at 75 Hz, 0.5° steps
+    p = tmp_path / "timed.bag"
+    write_bag(p, n=3, time_increment=inc, scan_time=1.0 / 75)
+    for f in Ros1BagReader(p).frames():
+        np.testing.assert_allclose(f.beam_times, np.arange(180) * float(np.float32(inc)), rtol=1e-12)
+    write_bag(tmp_path / "plain.bag", n=2)
+    write_bag(tmp_path / "odd.bag", n=2, time_increment=0.01, scan_time=0.1)  # 1.79 s of sweep in a 0.1 s scan
+    for name in ("plain.bag", "odd.bag"):
+        assert all(f.beam_times is None for f in Ros1BagReader(tmp_path / name).frames())
 
 
 def test_pointcloud_topic_in_bag(tmp_path):

@@ -180,9 +180,12 @@ class McapLogWriter:
         range_max: float,
         ranges: ArrayLike,
         intensities: ArrayLike | None = None,
+        time_increment: float = 0.0,
+        scan_time: float = 0.0,
     ) -> None:
         """``sensor_msgs/LaserScan``: ranges (m) stored float32, ``inf`` = no return (REP-117);
-        ``angle_max = angle_min + (n − 1)·angle_increment`` (rad)."""
+        ``angle_max = angle_min + (n − 1)·angle_increment`` (rad); *time_increment* (s between beams, the
+        first at the stamp) and *scan_time* (s between scans), 0 where unknown."""
         r = np.ascontiguousarray(ranges, dtype=np.float32).reshape(-1)
         inten = np.zeros(0, np.float32) if intensities is None else np.ascontiguousarray(intensities, dtype=np.float32).reshape(-1)
         if inten.size and inten.shape != r.shape:
@@ -192,8 +195,8 @@ class McapLogWriter:
             angle_min=float(angle_min),
             angle_max=float(angle_min) + (r.size - 1) * float(angle_increment),
             angle_increment=float(angle_increment),
-            time_increment=0.0,
-            scan_time=0.0,
+            time_increment=float(time_increment),
+            scan_time=float(scan_time),
             range_min=float(range_min),
             range_max=float(range_max),
             ranges=r,

@@ -206,6 +206,19 @@ def scan_arrays(msg: Any) -> tuple[Array, Array]:
     return angles, ranges
 
 
+def beam_times(msg: Any, n: int) -> Array | None:
+    """Each beam's time after the stamp, ``i·time_increment`` (REP-117 / sensor_msgs/LaserScan: the
+    stamp is the first beam's), or None where the driver left it out: a ``time_increment`` that is not
+    positive and finite, or a sweep (n − 1)·time_increment longer than ``scan_time`` (when given) or
+    than a second."""
+    inc = float(getattr(msg, "time_increment", 0.0) or 0.0)
+    if not (math.isfinite(inc) and inc > 0.0):
+        return None
+    period = float(getattr(msg, "scan_time", 0.0) or 0.0)
+    limit = period * 1.01 if math.isfinite(period) and period > 0.0 else 1.0
+    return np.arange(n, dtype=np.float64) * inc if (n - 1) * inc <= limit else None
+
+
 def check_scan(msg: Any, path: Path | str, where: str) -> None:
     """Reject scans the pipeline cannot use, naming the file and message.
 
@@ -242,14 +255,17 @@ def scan_to_frame(msg: Any, path: Path | str, where: str, index: int, **extra: A
     many drivers report for "no measurement") are neither a hit nor free space and are left out
     of ``angles`` / ``ranges`` / ``no_return`` — as the CARMEN reader drops zero ranges — so every
     beam of a Frame is either a point or a no-return; the kept beams keep their angles
-    ``angle_min + i·angle_increment``.
+    ``angle_min + i·angle_increment``, and their times ``i·time_increment`` when the driver gives them
+    (:func:`beam_times`; the front end deskews with them).
     """
     check_scan(msg, path, where)
     angles, ranges = scan_arrays(msg)
+    times = beam_times(msg, len(ranges))
     rmin, rmax = float(msg.range_min), float(msg.range_max)
     keep = ranges >= rmin  # +inf included
     if not keep.all():
         angles, ranges = angles[keep], ranges[keep]
+        times = None if times is None else times[keep]
     no_return = ranges >= rmax  # +inf included
     ranges = np.where(no_return, np.inf, ranges)
     hit = ~no_return
@@ -262,6 +278,7 @@ def scan_to_frame(msg: Any, path: Path | str, where: str, index: int, **extra: A
         angles=angles,
         ranges=ranges,
         no_return=no_return,
+        beam_times=times,
         max_range=rmax,
         min_range=rmin,
         source=f"{Path(path).name}:{where}",
