@@ -114,6 +114,15 @@ class Odometry(abc.ABC):
         """The latest sensor pose (identity before the first frame)."""
         return self._pose.copy()
 
+    def planar_twist(self) -> Array | None:
+        """The last increment as a constant twist ``(v_x, v_y, ω)`` per second of the sensor (planar; the
+        velocity a scan is deskewed with), None before two frames or after a zero interval."""
+        if self._prev_frame is None or self._last_dt <= 0.0:
+            return None
+        from .deskew import planar_twist
+
+        return planar_twist(self._last_delta, self._last_dt)
+
     def _guess(self, frame: Frame, use_wheel: bool) -> Array:
         """Predicted ``prev_T_curr``: wheel odometry if allowed and present, else constant velocity."""
         if use_wheel and self._prev_frame is not None:

@@ -62,6 +62,8 @@ class OdometryStageConfig(_Model):
 
     method: Literal["auto", "kiss", "icp"] = "auto"
     use_wheel_odometry: bool = Field(True, description="the log's wheel odometry predicts each scan's pose (else constant velocity)")
+    deskew: bool = Field(True, description="planar scans whose beam times are known (the log's LaserScan.time_increment, or laser_revolution_s) are corrected for the motion during the sweep at the last increment's velocity (registration.deskew)")
+    laser_revolution_s: float | None = Field(None, gt=0, description="a sensor quantity for logs that do not record beam times (CARMEN): the seconds a planar laser takes for one revolution (a Hokuyo URG-04LX 0.1, a UTM-30LX 0.025, a SICK LMS 2xx 1/75), its beams measured in the order listed, the first at the stamp; None: the log's own times, or none")
     icp_2d: IcpOdometryConfig = Field(default_factory=lambda: PLANAR_ICP, description="our ICP odometry on planar scans")
     icp_3d: IcpOdometryConfig = Field(default_factory=lambda: SPATIAL_ICP, description="our ICP odometry on 3D clouds")
     kiss_2d: KissOdometryConfig = Field(default_factory=lambda: PLANAR_KISS, description="KISS-ICP on planar scans")

@@ -24,6 +24,7 @@ calibrated online against the registration (:mod:`slam.noise_scale`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -36,6 +37,7 @@ from core.frame import Frame
 from registration import correlative
 from registration.alignment import evaluate_alignment
 from registration.config import IcpConfig
+from registration.deskew import deskew_planar, sweep_times
 from registration.odometry import Odometry, OdometryStep
 from registration.target import IcpTarget
 from registration.voxel import voxel_downsample
@@ -228,8 +230,20 @@ class FrontEnd:
             model = self.wheel_calibration.calibrated(model)
         return WheelEdge(prev.id, kf.id, wrel, model), consistent
 
+    def _deskewed(self, frame: Frame) -> Frame:
+        """*frame* corrected for the motion during its sweep when its beam times are known (the log's, or
+        ``laser_revolution_s``) and the odometry has a velocity; the frame as it is otherwise."""
+        c = self.config.odometry
+        if not (c.deskew and frame.is_planar and frame.angles is not None):
+            return frame
+        if frame.beam_times is None and c.laser_revolution_s is not None:
+            frame = dataclasses.replace(frame, beam_times=sweep_times(frame.angles, c.laser_revolution_s))
+        twist = self.odometry.planar_twist() if frame.beam_times is not None else None
+        return frame if twist is None else deskew_planar(frame, twist)
+
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
         """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
+        frame = self._deskewed(frame)
         lumps_before = getattr(self.odometry, "alternative_starts", 0)
         step = self.odometry.update(frame)
         self._lumpy_since_kf |= getattr(self.odometry, "alternative_starts", 0) > lumps_before
