@@ -217,3 +217,46 @@ def test_cli_bad_map_yaml(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "w.yaml" in err[0] and "resolution" in err[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["w.yaml"]
+
+
+def test_a_sweeping_laser_is_skewed_and_deskewing_undoes_it(tmp_path):
+    """A laser with a revolution time (the URG-04LX preset) takes each beam from the pose of its own
+    time: its log records that time (``time_increment``), read back as each frame's ``beam_times``; a
+    scan taken while turning, deskewed with the true twist, lies on the world's walls seen from the
+    pose at mid-sweep, and the same scan read as if taken at once from there does not."""
+    from registration.deskew import deskew_planar, planar_twist
+    from slam.logs import open_log
+
+    spec = LASER_PRESETS["hokuyo_urg04lx"]
+    sim = simulate(load_world("rooms", seed=1), n_scans=300, spec=spec, seed=1, range_noise=0.0)
+    out = tmp_path / "urg.mcap"
+    write_simulated_log(sim, out)
+    frames = list(open_log(out).frames())
+    np.testing.assert_allclose(frames[5].beam_times, spec.beam_times(), rtol=1e-6)
+    world = sim.world
+    iy, ix = np.nonzero(world.occupied)
+    cx, cy = world.cell_centres()
+    walls = cKDTree(np.column_stack([cx[ix], cy[iy]]))
+    sensor = sim.sensor_poses()
+    mid = 0.5 * spec.beam_times()[-1]
+    turns = [k for k in range(len(sim) - 1)
+             if abs(geo.matrix_to_xytheta(geo.relative(sensor[k], sensor[k + 1]))[2]) / spec.period > 0.6]
+    assert len(turns) >= 10
+    raw_d, fixed_d = [], []
+    for k in turns[:20]:
+        twist = planar_twist(geo.relative(sensor[k], sensor[k + 1]), spec.period)
+        at_mid = sensor[k] @ geo.se3_exp(np.array([twist[0] * mid, twist[1] * mid, 0, 0, 0, twist[2] * mid]))
+        for pts, bucket in ((frames[k].points, raw_d), (deskew_planar(frames[k], twist).points, fixed_d)):
+            w = geo.transform_points(at_mid, np.column_stack([pts, np.zeros(len(pts))]))[:, :2]
+            _, near = walls.query(w, k=4)  # distance to the nearest occupied cell's square (0 on its edge)
+            gap = np.maximum(np.abs(w[:, None, :] - walls.data[near]) - 0.5 * world.resolution, 0.0)
+            bucket.append(np.percentile(np.linalg.norm(gap, axis=2).min(axis=1), 90))
+    assert np.median(fixed_d) < 0.002
+    assert np.median(raw_d) > 0.01
+
+
+def test_a_sweep_longer_than_the_scan_period_is_refused():
+    from evaluation.sim import LaserSpec
+
+    with pytest.raises(ValueError, match="sweep"):
+        LaserSpec("slow", 100, -np.pi, np.pi * 0.99, 0.1, 5.0, 10.0, 0.01, revolution_s=0.2)

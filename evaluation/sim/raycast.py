@@ -122,14 +122,17 @@ def cast_rays(
     range_noise: float = 0.0,
 ) -> NDArray[np.float64]:
     """Simulate scans: ``(N, B)`` ranges (m) for sensor poses ``(N, 3)`` = world (x, y, θ) of the
-    laser. ``inf`` = no return within ``range_max``; hits are noisy (σ = *range_noise*) and clipped
+    laser, or ``(N, B, 3)``, one per beam (a laser whose beams are taken one after the other while it
+    moves). ``inf`` = no return within ``range_max``; hits are noisy (σ = *range_noise*) and clipped
     to ``[range_min, range_max]`` (see the module docstring)."""
-    poses = np.asarray(sensor_poses_xyt, dtype=np.float64).reshape(-1, 3)
     angles = spec.angles()
-    n, b = len(poses), len(angles)
-    theta = poses[:, 2:3] + angles[None, :]
+    b = len(angles)
+    poses = np.asarray(sensor_poses_xyt, dtype=np.float64)
+    poses = poses.reshape(-1, b, 3) if poses.ndim == 3 else poses.reshape(-1, 1, 3)
+    n = len(poses)
+    theta = poses[..., 2] + angles[None, :]
     dirs = np.stack([np.cos(theta), np.sin(theta)], axis=-1).reshape(-1, 2)
-    starts = np.repeat(poses[:, :2], b, axis=0)
+    starts = np.broadcast_to(poses[..., :2], (n, b, 2)).reshape(-1, 2)
     r = raycast_distances(world.occupied, world.origin_xy, world.resolution, starts, dirs, spec.range_max)
     r = r.reshape(n, b)
     hit = np.isfinite(r)

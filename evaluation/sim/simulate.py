@@ -85,7 +85,8 @@ class SimulatedLog:
             pts = np.column_stack([r[hit] * c[hit], r[hit] * s[hit]])
             yield Frame(
                 stamp=float(self.stamps[i]), points=pts, index=i, angles=self.angles, ranges=r.copy(),
-                no_return=~hit, odom=self.odometry[i].copy(), ground_truth=self.ground_truth[i].copy(),
+                no_return=~hit, beam_times=self.spec.beam_times() if self.spec.revolution_s > 0 else None,
+                odom=self.odometry[i].copy(), ground_truth=self.ground_truth[i].copy(),
                 base_T_sensor=self.base_T_sensor.copy(), max_range=self.spec.range_max,
                 min_range=self.spec.range_min, source=f"simulated {self.world.name} scan {i}",
             )
@@ -116,6 +117,16 @@ def odometry_from_ground_truth(xyt: ArrayLike, alphas: Sequence[float], rng: np.
     return np.column_stack([x, y, geo.wrap_angle(th)])
 
 
+def _during_sweep(sensor_xyt: NDArray[np.float64], stamps: NDArray[np.float64],
+                  beam_times: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(N, B, 3)`` sensor pose at each beam's time (stamp + beam time), linear in x, y and the unwrapped
+    heading between the scans' poses (held after the last)."""
+    t = stamps[:, None] + beam_times[None, :]
+    heading = np.unwrap(sensor_xyt[:, 2])
+    return np.stack([np.interp(t, stamps, sensor_xyt[:, 0]), np.interp(t, stamps, sensor_xyt[:, 1]),
+                     geo.wrap_angle(np.interp(t, stamps, heading))], axis=-1)
+
+
 def simulate(
     world: World,
     *,
@@ -140,8 +151,9 @@ def simulate(
         max_speed (m/s), max_turn_rate (rad/s), robot_radius (m): see :func:`plan_path`.
 
     The path, the range noise and the odometry noise use independent random streams spawned
-    from *seed*, so changing a noise level does not change the path. Each scan is taken
-    instantaneously at its stamp (no motion during the sweep, so no deskewing is needed).
+    from *seed*, so changing a noise level does not change the path. A laser with a ``revolution_s``
+    takes each beam at its own time during the sweep, from the pose the path has then (the log then
+    records ``time_increment``); the others take every beam at the stamp.
     """
     if n_scans is not None and n_scans < 1:
         raise ConfigError(f"--scans must be >= 1, got {n_scans}")
@@ -169,9 +181,10 @@ def simulate(
                         max_turn_rate=max_turn_rate, robot_radius=robot_radius)
     gt = geo.xytheta_to_matrix(xyt)
     sensor_xyt = geo.matrix_to_xytheta(gt @ b_T_s)
-    ranges = cast_rays(world, sensor_xyt, spec, rng=np.random.default_rng(range_ss), range_noise=sigma)
-    odom = geo.xytheta_to_matrix(odometry_from_ground_truth(xyt, alphas, np.random.default_rng(odom_ss)))
     stamps = START_STAMP + np.arange(n_scans) * spec.period
+    beam_xyt = _during_sweep(sensor_xyt, stamps, spec.beam_times()) if spec.revolution_s > 0 else sensor_xyt
+    ranges = cast_rays(world, beam_xyt, spec, rng=np.random.default_rng(range_ss), range_noise=sigma)
+    odom = geo.xytheta_to_matrix(odometry_from_ground_truth(xyt, alphas, np.random.default_rng(odom_ss)))
     return SimulatedLog(world=world, spec=spec, stamps=stamps, ground_truth=gt, odometry=odom, angles=spec.angles(),
                         ranges=ranges, base_T_sensor=b_T_s, range_noise=sigma, odom_noise=alphas, seed=seed,
                         tour=tour)

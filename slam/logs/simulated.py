@@ -56,7 +56,8 @@ def write_simulated_log(sim: SimulatedLog, mcap_path: str | Path) -> None:
                 w.write_odometry("/odom", t, "odom", "base_link", sim.odometry[i], twist=vel[i])
                 w.write_odometry("/ground_truth", t, "map", "base_link", sim.ground_truth[i])
                 w.write_scan("/scan", t, "laser", spec.angle_min, spec.angle_increment, spec.range_min,
-                             spec.range_max, sim.ranges[i])
+                             spec.range_max, sim.ranges[i], time_increment=spec.time_increment,
+                             scan_time=spec.period if spec.revolution_s > 0 else 0.0)
         # the MCAP is complete under its final name; the finished map files follow by rename
         os.replace(tmp / pgm_path.name, pgm_path)
         os.replace(tmp / yaml_path.name, yaml_path)
