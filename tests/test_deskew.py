@@ -1,7 +1,8 @@
 """Deskewing a planar scan (registration.deskew) and the front end that uses it.
 
 Properties: a scan cast while the sensor moves, corrected with the true twist, lies on the world's walls
-as seen from the pose at the middle of its sweep (without the correction it does not); the twist of an increment is its
+as seen from the pose at the middle of its sweep (without the correction it does not); the sweep check
+reads from the scans which way their beams were taken; the twist of an increment is its
 logarithm over the interval (round trip through the exponential); and a front end turning in place with
 a slow laser is short of the turn by the closed-form fraction ω·s / (1 + ω·s) without deskewing, and
 within a small fraction of it with.
@@ -17,6 +18,7 @@ import pytest
 from core import geometry as geo
 from core.frame import Frame
 from registration.deskew import deskew_planar, planar_twist, sweep_times
+from registration.sweep_check import SweepCheck
 from slam.pipeline.config import SlamConfig
 from slam.pipeline.frontend import FrontEnd
 from slam.pipeline.odometry_source import make_odometry
@@ -65,17 +67,22 @@ def _exp(twist: np.ndarray, t: np.ndarray) -> np.ndarray:
     return geo.se3_exp(np.column_stack([twist[0] * t, twist[1] * t, z, z, z, twist[2] * t]))
 
 
-def _moving_scan(world_T_stamp: np.ndarray, twist: np.ndarray, stamp: float = 0.0, index: int = 0, n: int = 682) -> Frame:
-    """The scan a laser sweeping counter-clockwise over 240° in 2/3 of a revolution measures while its
-    sensor moves with the constant *twist* from *world_T_stamp* (beam i from the pose at its own time)."""
+def _moving_scan(world_T_stamp: np.ndarray, twist: np.ndarray, stamp: float = 0.0, index: int = 0, n: int = 682,
+                 mirror: str = "ccw") -> Frame:
+    """The scan a laser sweeping over 240° in 2/3 of a revolution measures while its sensor moves with the
+    constant *twist* from *world_T_stamp* (beam i from the pose at its own time). The frame lists the beams
+    by increasing angle with times i·increment, as a ROS driver does; *mirror* says how they were really
+    taken: ``ccw`` in that order, ``cw`` the other way round (what the rplidar_ros driver publishes),
+    ``instant`` all at the stamp."""
     angles = np.linspace(-_FOV / 2, _FOV / 2, n)
-    times = sweep_times(angles, _REVOLUTION_S)
-    poses = world_T_stamp @ _exp(twist, times)
+    listed = sweep_times(angles, _REVOLUTION_S)
+    taken = {"ccw": listed, "cw": listed[::-1], "instant": np.zeros(n)}[mirror]
+    poses = world_T_stamp @ _exp(twist, taken)
     heading = np.arctan2(poses[:, 1, 0], poses[:, 0, 0]) + angles
     ranges = _cast(poses[:, :2, 3], heading)
     pts = np.column_stack([ranges * np.cos(angles), ranges * np.sin(angles)])
     return Frame(stamp=stamp, points=pts, index=index, angles=angles, ranges=ranges,
-                 no_return=np.zeros(n, bool), beam_times=times, max_range=30.0)
+                 no_return=np.zeros(n, bool), beam_times=listed, max_range=30.0)
 
 
 def test_sweep_times_are_the_share_of_a_revolution():
@@ -116,30 +123,132 @@ def test_planar_twist_is_the_logarithm_over_the_interval(seed):
     np.testing.assert_allclose(planar_twist(_exp(twist, np.array([dt]))[0], dt), twist, atol=1e-9)
 
 
-def _turn_in_place(deskew: bool, rate: float = 1.2, scans: int = 26, dt: float = 0.1, *, untimed: bool = False) -> float:
-    """Heading (rad) the front end ends at after turning in place at *rate* rad/s for *scans* scans; with
-    *untimed* the frames carry no beam times (a CARMEN log) and the configuration gives the revolution."""
+_SCANS, _FROM, _DT = 60, 30, 0.1  # the sweep check decides after its 20th pair; turns measured from scan 30
+
+
+def _rates(steady: bool) -> np.ndarray:
+    """Turn rate (rad/s) during each scan: 1.2 throughout, or 0.6 and 1.8 by turns, five scans each (the
+    sweep check needs scans whose twists differ)."""
+    k = np.arange(_SCANS)
+    return np.full(_SCANS, 1.2) if steady else np.where((k // 5) % 2 == 0, 0.6, 1.8)
+
+
+def _turn_in_place(deskew: bool = True, *, mirror: str = "ccw", untimed: bool = False, force: str | None = None,
+                   steady: bool = False) -> tuple[float, float, str | None]:
+    """Turning in place: the front end's heading change from scan _FROM to the last, the true one, and the
+    sweep check's verdict. *untimed*: the frames carry no beam times (a CARMEN log) and the configuration
+    gives the revolution; *force*: the verdict set beforehand instead of read."""
     odometry = {"deskew": deskew, "use_wheel_odometry": False}
     if untimed:
         odometry["laser_revolution_s"] = _REVOLUTION_S
     config = SlamConfig.model_validate({"odometry": odometry})
     front = FrontEnd(config, make_odometry(config, planar=True))
-    twist = np.array([0.0, 0.0, rate])
-    for k in range(scans):
-        scan = _moving_scan(_pose(0.3, -0.2, rate * k * dt), twist, stamp=k * dt, index=k)
+    front.sweep.verdict = force
+    rates = _rates(steady)
+    heading_at = np.concatenate([[0.0], np.cumsum(rates * _DT)])
+    for k in range(_SCANS):
+        scan = _moving_scan(_pose(0.3, -0.2, heading_at[k]), np.array([0.0, 0.0, rates[k]]), stamp=k * _DT,
+                            index=k, mirror=mirror)
         front.process(dataclasses.replace(scan, beam_times=None) if untimed else scan)
-    last = front.track.odom_poses[-1]
-    return float(np.arctan2(last[1, 0], last[0, 0]))
+    heading = np.unwrap([np.arctan2(P[1, 0], P[0, 0]) for P in front.track.odom_poses])
+    return float(heading[-1] - heading[_FROM]), float(heading_at[_SCANS - 1] - heading_at[_FROM]), front.sweep.verdict
 
 
-def test_the_front_end_no_longer_comes_short_of_a_turn():
-    rate, scans, dt = 1.2, 26, 0.1
-    truth = rate * (scans - 1) * dt
-    kappa = rate * _REVOLUTION_S / (2 * np.pi)  # the sweep's seconds per radian times the turn rate
-    short_raw = truth - _turn_in_place(False, rate, scans, dt)
-    short_fixed = truth - _turn_in_place(True, rate, scans, dt)
-    # A scan taken while turning is compressed by 1 / (1 + κ): every turn comes short by κ / (1 + κ).
-    assert short_raw == pytest.approx(truth * kappa / (1 + kappa), rel=0.35)
-    assert abs(short_fixed) < 0.15 * short_raw
-    # The same from the configured revolution when the log records no beam times.
-    assert abs(truth - _turn_in_place(True, rate, scans, dt, untimed=True)) < 0.15 * short_raw
+def test_a_steady_turn_comes_short_by_the_closed_form_fraction():
+    """A scan taken while turning at a steady ω is compressed by 1 / (1 + κ), κ = ω · the sweep's seconds
+    per radian: registered without deskewing, every turn comes short by κ / (1 + κ)."""
+    turned, truth, _ = _turn_in_place(False, steady=True)
+    kappa = 1.2 * _REVOLUTION_S / (2 * np.pi)
+    assert truth - turned == pytest.approx(truth * kappa / (1 + kappa), rel=0.35)
+
+
+def test_deskewed_with_the_right_reading_a_turn_comes_out_right():
+    """With the beam times read as the scans were taken (the check's verdict set beforehand: a steady turn
+    gives it nothing to read, see the next tests), the shortfall is gone; the same from the configured
+    revolution when the log records no beam times."""
+    turned, truth, _ = _turn_in_place(False, steady=True)
+    short_raw = truth - turned
+    for untimed in (False, True):
+        turned, truth, _ = _turn_in_place(force="listed", steady=True, untimed=untimed)
+        assert abs(truth - turned) < 0.15 * short_raw
+
+
+def test_read_against_the_mirror_the_error_doubles():
+    """A clockwise mirror whose driver lists the beams by increasing angle, times counted from the first
+    listed (what the rplidar_ros and ydlidar drivers publish): the scan is stretched, the turn comes out
+    long; deskewed with the log's times, twice as long; with the times reversed, right."""
+    turned, truth, _ = _turn_in_place(False, mirror="cw", steady=True)
+    long_raw = turned - truth
+    assert long_raw > 0.02
+    blind, truth, _ = _turn_in_place(mirror="cw", force="listed", steady=True)
+    assert blind - truth == pytest.approx(2 * long_raw, rel=0.35)
+    turned, truth, _ = _turn_in_place(mirror="cw", force="reversed", steady=True)
+    assert abs(turned - truth) < 0.15 * long_raw
+
+
+def _check(mirror: str, rates: np.ndarray, dt: float = 0.1) -> SweepCheck:
+    """A sweep check fed scans taken turning in place at piecewise *rates* (rad/s), with their true poses."""
+    check = SweepCheck()
+    heading_at = np.concatenate([[0.0], np.cumsum(rates * dt)])
+    for k, rate in enumerate(rates):
+        pose = _pose(0.3, -0.2, heading_at[k])
+        check.add(_moving_scan(pose, np.array([0.0, 0.0, rate]), stamp=k * dt, index=k, mirror=mirror), pose)
+    return check
+
+
+@pytest.mark.parametrize(("mirror", "verdict"), [("ccw", "listed"), ("cw", "reversed"), ("instant", "none")])
+def test_the_sweep_check_reads_which_way_the_beams_were_taken(mirror, verdict):
+    """Turning by turns at 0.6 and 1.8 rad/s, the check tells beams taken as listed, against the list,
+    or all at once (a driver that states times for a scan taken at once)."""
+    k = np.arange(60)
+    check = _check(mirror, np.where((k // 5) % 2 == 0, 0.6, 1.8))
+    assert check.verdict == verdict and check.pairs == 20
+
+
+def test_a_steady_turn_gives_the_sweep_check_nothing_to_read():
+    """Two scans compressed alike match up to a rotation: a steady turn leaves every pair out."""
+    check = _check("ccw", np.full(60, 1.2))
+    assert check.verdict is None and check.pairs == 0
+
+
+@pytest.mark.parametrize(("sensor", "verdict"), [("hokuyo_urg04lx", "listed"), ("rplidar_a2", "reversed")])
+def test_the_front_end_reads_the_beam_times_of_simulated_lasers(sensor, verdict):
+    """On a simulated tour (the simulator's own motion, wheel odometry and noise), the front end reads a
+    URG-04LX's beam times as listed and a clockwise RPLIDAR's, listed against its mirror by its driver, as
+    reversed, before it deskews with them."""
+    from evaluation.sim import LASER_PRESETS, load_world
+    from evaluation.sim.simulate import simulate
+
+    sim = simulate(load_world("rooms", seed=2), n_scans=300, spec=LASER_PRESETS[sensor], seed=2)
+    config = SlamConfig()
+    front = FrontEnd(config, make_odometry(config, planar=True))
+    for frame in sim.frames():
+        front.process(frame)
+        if front.sweep.verdict is not None:
+            break
+    assert front.sweep.verdict == verdict
+
+
+def test_the_beam_time_order_is_read_before_the_run():
+    """The frame loop reads the order from the log's opening scans before the run proper (so that no scan
+    of the run is registered with one reading and a later one with another), feeds those scans again,
+    and a log without beam times is not held up: one frame read, the configuration as it was."""
+    from evaluation.sim import LASER_PRESETS, load_world
+    from evaluation.sim.simulate import simulate
+    from slam.pipeline.beam_times import read_beam_time_order
+    from slam.pipeline.front_process import run_front_end
+
+    sim = simulate(load_world("rooms", seed=2), n_scans=300, spec=LASER_PRESETS["rplidar_a2"], seed=2)
+    config = SlamConfig.model_validate({"stage_processes": False})
+    frames = iter(sim.frames())
+    fixed, head, stats = read_beam_time_order(frames, config)
+    assert fixed.odometry.beam_time_order == "reversed" and config.odometry.beam_time_order == "auto"
+    assert len(head) == stats["beam_time_scans_read"] < 300 and stats["beam_times"] == "reversed"
+    assert [f.index for f in head] == list(range(len(head))) and next(frames).index == len(head)
+
+    summary = run_front_end(sim.frames(), config, lambda *kf: None)
+    assert len(summary.track.stamps) == 300 and summary.stats["beam_times"] == "reversed"
+
+    untimed = iter(dataclasses.replace(f, beam_times=None) for f in sim.frames())
+    same, head, stats = read_beam_time_order(untimed, config)
+    assert same is config and len(head) == 1 and stats == {}

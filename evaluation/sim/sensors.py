@@ -18,7 +18,10 @@ class LaserSpec:
     ``noise_std`` is the default Gaussian range noise σ (m) of the simulator for this sensor.
     ``revolution_s`` is the time the mirror takes for one turn: the beams are measured one after the
     other from ``angle_min``, the first at the scan's stamp, ``time_increment`` apart (a robot that
-    moves meanwhile skews the scan); 0 takes every beam at the stamp.
+    moves meanwhile skews the scan); 0 takes every beam at the stamp. ``clockwise``: the mirror turns
+    the other way, from ``angle_max``, while the beams are still listed by increasing angle and the log
+    still says ``time_increment`` from the first listed — what the rplidar_ros and ydlidar drivers
+    publish (their issue trackers: Slamtec/rplidar_ros #55, cartographer_ros #1546).
     """
 
     name: str
@@ -30,6 +33,7 @@ class LaserSpec:
     rate_hz: float
     noise_std: float
     revolution_s: float = 0.0
+    clockwise: bool = False
 
     def __post_init__(self) -> None:
         if self.num_beams < 2 or not self.angle_max > self.angle_min:
@@ -54,7 +58,12 @@ class LaserSpec:
         return self.revolution_s * self.angle_increment / (2 * np.pi)
 
     def beam_times(self) -> NDArray[np.float64]:
-        """``(B,)`` time of each beam after the scan's stamp (s)."""
+        """``(B,)`` time each beam is taken, after the scan's stamp (s)."""
+        order = np.arange(self.num_beams, dtype=np.float64)
+        return self.time_increment * (order[::-1] if self.clockwise else order)
+
+    def logged_beam_times(self) -> NDArray[np.float64]:
+        """``(B,)`` the times the log gives the beams (``i·time_increment``, whichever way the mirror turns)."""
         return self.time_increment * np.arange(self.num_beams, dtype=np.float64)
 
     def angles(self) -> NDArray[np.float64]:
@@ -77,4 +86,8 @@ LASER_PRESETS: dict[str, LaserSpec] = {
     # mirror turn), ±10 mm to 1 m; a slow sweep: the beams are taken one after the other over 67 ms.
     "hokuyo_urg04lx": LaserSpec("hokuyo_urg04lx", 682, -681 * np.pi / 1024, 681 * np.pi / 1024, 0.02, 5.6, 10.0, 0.01,
                                 revolution_s=0.1),
+    # Slamtec RPLIDAR A2 data sheet: 360°, 0.15–12 m, 10 Hz, ≤ 1 % of range; turning clockwise, as its ROS
+    # driver publishes it (the beams by increasing angle, the times the other way round).
+    "rplidar_a2": LaserSpec("rplidar_a2", 360, -np.pi, np.pi - 2 * np.pi / 360, 0.15, 12.0, 10.0, 0.01,
+                            revolution_s=0.1, clockwise=True),
 }

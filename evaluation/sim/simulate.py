@@ -85,7 +85,7 @@ class SimulatedLog:
             pts = np.column_stack([r[hit] * c[hit], r[hit] * s[hit]])
             yield Frame(
                 stamp=float(self.stamps[i]), points=pts, index=i, angles=self.angles, ranges=r.copy(),
-                no_return=~hit, beam_times=self.spec.beam_times() if self.spec.revolution_s > 0 else None,
+                no_return=~hit, beam_times=self.spec.logged_beam_times() if self.spec.revolution_s > 0 else None,
                 odom=self.odometry[i].copy(), ground_truth=self.ground_truth[i].copy(),
                 base_T_sensor=self.base_T_sensor.copy(), max_range=self.spec.range_max,
                 min_range=self.spec.range_min, source=f"simulated {self.world.name} scan {i}",

@@ -20,7 +20,7 @@ def simulate(
     robot_radius: float = typer.Option(0.2, "--robot-radius", parser=real(0.0, above=True),
                                        help="Robot radius in m (0.2: a small indoor robot); free space it "
                                             "cannot reach is reported."),
-    sensor: str = typer.Option("fastgpom", "--sensor", help="Laser preset: fastgpom, sick_lms, hokuyo_utm30, hokuyo_urg04lx (a slow sweep: every beam at its own time)."),
+    sensor: str = typer.Option("fastgpom", "--sensor", help="Laser preset: fastgpom, sick_lms, hokuyo_utm30, hokuyo_urg04lx, rplidar_a2 (slow sweeps: every beam at its own time; the RPLIDAR turns clockwise, its beams listed the other way)."),
     range_noise: float | None = typer.Option(None, "--range-noise", parser=real(0.0),
                                              help="Gaussian range noise σ in m (default: the preset's)."),
     odom_noise: str | None = typer.Option(None, "--odom-noise",

@@ -64,6 +64,7 @@ class OdometryStageConfig(_Model):
     use_wheel_odometry: bool = Field(True, description="the log's wheel odometry predicts each scan's pose (else constant velocity)")
     deskew: bool = Field(True, description="planar scans whose beam times are known (the log's LaserScan.time_increment, or laser_revolution_s) are corrected for the motion during the sweep at the last increment's velocity (registration.deskew)")
     laser_revolution_s: float | None = Field(None, gt=0, description="a sensor quantity for logs that do not record beam times (CARMEN): the seconds a planar laser takes for one revolution (a Hokuyo URG-04LX 0.1, a UTM-30LX 0.025, a SICK LMS 2xx 1/75), its beams measured in the order listed, the first at the stamp; None: the log's own times, or none")
+    beam_time_order: Literal["auto", "listed", "reversed"] = Field("auto", description="which way a planar laser took its beams against their listed times: auto reads it from the log's first scans before the run (registration.sweep_check; some drivers list a clockwise mirror's beams by increasing angle with the times the other way) and deskews only as the scans bear out; listed / reversed: as set")
     icp_2d: IcpOdometryConfig = Field(default_factory=lambda: PLANAR_ICP, description="our ICP odometry on planar scans")
     icp_3d: IcpOdometryConfig = Field(default_factory=lambda: SPATIAL_ICP, description="our ICP odometry on 3D clouds")
     kiss_2d: KissOdometryConfig = Field(default_factory=lambda: PLANAR_KISS, description="KISS-ICP on planar scans")

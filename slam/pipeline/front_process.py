@@ -16,6 +16,7 @@ is about a quarter faster with them, with byte-identical outputs (measured in do
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator
@@ -24,6 +25,7 @@ from core import interrupts
 from core.errors import GpslamError
 from core.frame import Frame
 
+from .beam_times import read_beam_time_order
 from .child import ChildProcess, Reply, peak_memory_mb
 from .config import SlamConfig
 from .frontend import FrontEnd, Keyframe, OdometryEdge, ScanTrack, WheelEdge
@@ -47,6 +49,9 @@ def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
              "unguided_escalations": getattr(front.odometry, "unguided_escalations", 0),
              "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped,
              "slid_edges": front.slid_edges, "max_slide_m": round(front.max_slide_m, 4)}
+    if front.sweep.pairs or front.sweep.verdict is not None:
+        stats |= {"beam_times": front.sweep.verdict or "undecided", "beam_time_pairs": front.sweep.pairs,
+                  "beam_time_costs_m": {k: round(v / max(front.sweep.pairs, 1), 5) for k, v in front.sweep.costs.items()}}
     cal = front.wheel_calibration
     if cal is not None:
         stats |= {"wheel_noise_scale_translation": round(cal.scale_translation, 4),
@@ -180,9 +185,11 @@ def run_front_end(frames: Iterable[Frame], config: SlamConfig, on_keyframe: Call
     GpslamError when the frames hold no scan."""
     use_process = config.stage_processes if processes is None else processes
     front: InlineFrontEnd | FrontEndProcess | None = None
+    source = iter(frames)
+    config, head, beam_time_stats = read_beam_time_order(source, config)
     try:
         n = 0
-        for frame in frames:
+        for frame in itertools.chain(head, source):
             interrupts.check()  # a Ctrl-C that C code swallowed stops the run here
             if config.max_scans is not None and n >= config.max_scans:
                 break
@@ -199,6 +206,7 @@ def run_front_end(frames: Iterable[Frame], config: SlamConfig, on_keyframe: Call
         rest, summary = front.finish()
         for item in rest:
             on_keyframe(*item)
+        summary.stats |= beam_time_stats
         return summary
     finally:
         if front is not None:

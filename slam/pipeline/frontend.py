@@ -37,12 +37,14 @@ from core.frame import Frame
 from registration import correlative
 from registration.alignment import evaluate_alignment
 from registration.config import IcpConfig
-from registration.deskew import deskew_planar, sweep_times
+from registration.deskew import deskew_planar
+from registration.sweep_check import SweepCheck
 from registration.odometry import Odometry, OdometryStep
 from registration.target import IcpTarget
 from registration.voxel import voxel_downsample
 from slam.keyframes import Keyframe, KeyframeSelector
 
+from .beam_times import timed_frame
 from .config import SlamConfig
 from slam.noise_scale import NoiseScaleCalibration
 
@@ -110,6 +112,9 @@ class FrontEnd:
         self.wheel_calibration: NoiseScaleCalibration | None = None  # created with the first wheel edge
         self._lumpy_since_kf = False  # the odometry took its constant-velocity start since the last keyframe
         self._field: tuple[int, correlative.LikelihoodPyramid] | None = None  # (keyframe id, its likelihood field)
+        self.sweep = SweepCheck()  # which way the beam times run, read from the scans before deskewing with them
+        if config.odometry.beam_time_order != "auto":  # set, or read before the run (slam.pipeline.beam_times)
+            self.sweep.verdict = config.odometry.beam_time_order
 
     def latest_wheel_edge(self, kf: Keyframe) -> WheelEdge | None:
         """The wheel-odometry edge ending at keyframe *kf*, if the log has wheel odometry."""
@@ -230,22 +235,27 @@ class FrontEnd:
             model = self.wheel_calibration.calibrated(model)
         return WheelEdge(prev.id, kf.id, wrel, model), consistent
 
-    def _deskewed(self, frame: Frame) -> Frame:
-        """*frame* corrected for the motion during its sweep when its beam times are known (the log's, or
-        ``laser_revolution_s``) and the odometry has a velocity; the frame as it is otherwise."""
-        c = self.config.odometry
-        if not (c.deskew and frame.is_planar and frame.angles is not None):
-            return frame
-        if frame.beam_times is None and c.laser_revolution_s is not None:
-            frame = dataclasses.replace(frame, beam_times=sweep_times(frame.angles, c.laser_revolution_s))
-        twist = self.odometry.planar_twist() if frame.beam_times is not None else None
-        return frame if twist is None else deskew_planar(frame, twist)
+    def _deskewed(self, timed: Frame) -> Frame:
+        """*timed* corrected for the motion during its sweep once the sweep check has read its beam times
+        (as listed, reversed, or not to be used) and the odometry has a velocity; as it is before."""
+        if self.sweep.verdict in (None, "none"):
+            return timed
+        twist = self.odometry.planar_twist()
+        if twist is None:
+            return timed
+        if self.sweep.verdict == "reversed":
+            timed = dataclasses.replace(timed, beam_times=float(timed.beam_times.max()) - timed.beam_times)
+        return deskew_planar(timed, twist)
 
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
         """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
-        frame = self._deskewed(frame)
+        timed = timed_frame(frame, self.config.odometry)
+        if timed is not None:
+            frame = self._deskewed(timed)
         lumps_before = getattr(self.odometry, "alternative_starts", 0)
         step = self.odometry.update(frame)
+        if timed is not None and self.sweep.verdict is None:
+            self.sweep.add(timed, step.world_T_sensor)
         self._lumpy_since_kf |= getattr(self.odometry, "alternative_starts", 0) > lumps_before
         if self._dof is None:
             self._dof = 3 if frame.is_planar else 6
