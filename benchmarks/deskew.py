@@ -20,42 +20,30 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from slam.cli.eval_io import check_json, save_json  # noqa: E402
+from cli_runs import run_and_report, slam  # noqa: E402
 
 SENSORS = ("hokuyo_urg04lx", "rplidar_a2")
 SETTINGS = {"read_first": None, "not_deskewed": "odometry:\n  deskew: false\n",
             "trusted": "odometry:\n  beam_time_order: listed\n"}
 
 
-def _slam(*args: str) -> None:
-    """Run ``python -m slam ARGS`` in the repository; a failure stops the benchmark with its own message."""
-    done = subprocess.run([sys.executable, "-m", "slam", *args], cwd=REPO, capture_output=True, text=True)
-    if done.returncode != 0:
-        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
-        sys.exit(f"slam {' '.join(args)} failed ({done.returncode}): {last}")
-
-
 def tour(world: str, sensor: str, seed: int, setting: str, folder: Path) -> dict:
     """Simulate the tour (unless its log is in *folder*), run SLAM on it with *setting*, read the result."""
     log = folder / f"{world}_{sensor}_{seed}.mcap"
     if not log.exists():
-        _slam("simulate", world, "--sensor", sensor, "--seed", str(seed), "--out", str(log))
+        slam("simulate", world, "--sensor", sensor, "--seed", str(seed), "--out", str(log))
     out = folder / f"run_{world}_{sensor}_{seed}_{setting}"
     args = ["run", str(log), "--eval", "--out", str(out)]
     if SETTINGS[setting] is not None:
         cfg = folder / f"{setting}.yaml"
         cfg.write_text(SETTINGS[setting])
         args += ["--config", str(cfg)]
-    _slam(*args)
+    slam(*args)
     metrics = json.loads((out / "metrics.json").read_text())
     summary = json.loads((out / "summary.json").read_text())
     stats = summary["odometry_stats"]
@@ -90,16 +78,10 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, default=None, help="keep the logs and runs here (reused logs are not simulated again)")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = ap.parse_args()
-    check_json(args.out)
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        folder = args.dir or Path(tmp)
-        folder.mkdir(parents=True, exist_ok=True)
-        rows = [tour(world, sensor, seed, setting, folder)
-                for seed in args.seeds for world in args.worlds for sensor in SENSORS for setting in SETTINGS]
-    result = {"summary": summarise(rows), "runs": rows, "runtime_s": time.perf_counter() - t0}
-    save_json(args.out, result)
-    print(json.dumps(result, indent=1))
+    run_and_report(args.dir, args.out,
+                   lambda folder: [tour(world, sensor, seed, setting, folder) for seed in args.seeds
+                                   for world in args.worlds for sensor in SENSORS for setting in SETTINGS],
+                   summarise, "runs")
 
 
 if __name__ == "__main__":

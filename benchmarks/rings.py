@@ -22,37 +22,26 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from slam.cli.eval_io import check_json, save_json  # noqa: E402
-
-
-def _slam(*args: str) -> None:
-    """Run ``python -m slam ARGS`` in the repository; a failure stops the benchmark with its own message."""
-    done = subprocess.run([sys.executable, "-m", "slam", *args], cwd=REPO, capture_output=True, text=True)
-    if done.returncode != 0:
-        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
-        sys.exit(f"slam {' '.join(args)} failed ({done.returncode}): {last}")
+from cli_runs import run_and_report, slam  # noqa: E402
 
 
 def ring(seed: int, sensor: str, folder: Path) -> dict:
     """Simulate ring *seed* (unless its log is in *folder*), run SLAM on it, score it against the truth."""
     log = folder / f"ring_{sensor}_{seed}.mcap"
     if not log.exists():
-        _slam("simulate", "ring", "--sensor", sensor, "--seed", str(seed), "--out", str(log))
+        slam("simulate", "ring", "--sensor", sensor, "--seed", str(seed), "--out", str(log))
     out = folder / f"run_{sensor}_{seed}"
     t0 = time.perf_counter()
-    _slam("run", str(log), "--eval", "--out", str(out))
+    slam("run", str(log), "--eval", "--out", str(out))
     wall = time.perf_counter() - t0
     scored = folder / f"loops_{sensor}_{seed}.json"
-    _slam("eval", "loops", str(out / "graph.g2o"), "--gt", str(out / "ground_truth.tum"),
+    slam("eval", "loops", str(out / "graph.g2o"), "--gt", str(out / "ground_truth.tum"),
           "--node-stamps", str(out / "node_stamps.txt"), "--json", str(scored))
     metrics = json.loads((out / "metrics.json").read_text())
     summary = json.loads((out / "summary.json").read_text())
@@ -87,15 +76,8 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, default=None, help="keep the logs and runs here (reused logs are not simulated again)")
     ap.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = ap.parse_args()
-    check_json(args.out)
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        folder = args.dir or Path(tmp)
-        folder.mkdir(parents=True, exist_ok=True)
-        rows = [ring(seed, args.sensor, folder) for seed in args.seeds]
-    result = {"summary": summarise(rows), "rings": rows, "runtime_s": time.perf_counter() - t0}
-    save_json(args.out, result)
-    print(json.dumps(result, indent=1))
+    run_and_report(args.dir, args.out, lambda folder: [ring(seed, args.sensor, folder) for seed in args.seeds],
+                   summarise, "rings")
 
 
 if __name__ == "__main__":

@@ -32,13 +32,14 @@ from .target import IcpTarget
 
 Array = NDArray[np.float64]
 
-__all__ = ["SweepCheck", "READINGS"]
+__all__ = ["SweepCheck", "READINGS", "as_read"]
 
 #: the readings of a scan's beam times: as the log lists them, reversed (t_max − t), not at all
 READINGS = ("listed", "reversed", "none")
 
 
-def _read(frame: Frame, reading: str) -> Frame:
+def as_read(frame: Frame, reading: str) -> Frame:
+    """*frame* with its beam times as *reading* takes them (one of :data:`READINGS`)."""
     t = frame.beam_times
     if reading == "listed":
         return frame
@@ -83,7 +84,7 @@ class SweepCheck:
         return planar_twist(geo.relative(a.pose, b.pose), dt) if dt > 0 else None
 
     def _points(self, frame: Frame, twist: Array, reading: str) -> Array:
-        pts = deskew_planar(_read(frame, reading), twist).points
+        pts = deskew_planar(as_read(frame, reading), twist).points
         return pts[np.linalg.norm(pts, axis=1) <= self.max_range]
 
     def add(self, frame: Frame, world_T_sensor: Array) -> str | None:

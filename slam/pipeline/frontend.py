@@ -24,7 +24,6 @@ calibrated online against the registration (:mod:`slam.noise_scale`).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -38,7 +37,7 @@ from registration import correlative
 from registration.alignment import evaluate_alignment
 from registration.config import IcpConfig
 from registration.deskew import deskew_planar
-from registration.sweep_check import SweepCheck
+from registration.sweep_check import SweepCheck, as_read
 from registration.odometry import Odometry, OdometryStep
 from registration.target import IcpTarget
 from registration.voxel import voxel_downsample
@@ -243,9 +242,7 @@ class FrontEnd:
         twist = self.odometry.planar_twist()
         if twist is None:
             return timed
-        if self.sweep.verdict == "reversed":
-            timed = dataclasses.replace(timed, beam_times=float(timed.beam_times.max()) - timed.beam_times)
-        return deskew_planar(timed, twist)
+        return deskew_planar(as_read(timed, self.sweep.verdict), twist)
 
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
         """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
