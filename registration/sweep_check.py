@@ -62,7 +62,7 @@ class SweepCheck:
         min_change: a pair counts when its scans' turn rates differ by at least this much (rad/s): a scan
             turning at a steady ω is compressed by a steady factor, which another scan compressed alike
             matches up to a rotation, so only a change of the turn shows the skew. (Pairs whose speeds
-            differ were tried too: on the Mines lab logs their residual fell with either reading.)
+            differ were tried too: on real logs their residual fell with either reading, docs/ODOMETRY.md.)
         pairs: pairs to collect before deciding (and after, until one reading is ahead by *margin*).
         margin: the best reading must fit this fraction better than each of the other two.
         max_range_m: points farther than this are left out of the fit (a far wall magnifies heading error).
