@@ -136,7 +136,7 @@ def test_written_bag_round_trip(tmp_path):
     assert (inf.format, inf.scans, inf.beams_per_scan, inf.has_odometry) == ("ros1", 20, 180, True)
 
 
-def test_beam_times_from_time_increment(tmp_path):
+def test_beam_times_from_time_increment(tmp_path, capsys):
     """A LaserScan's ``time_increment`` gives each beam's time after the stamp (i·increment, REP-117),
     which the front end deskews with; a driver that leaves it 0, or states a sweep longer than its own
     ``scan_time``, gives none."""
@@ -149,6 +149,15 @@ def test_beam_times_from_time_increment(tmp_path):
     write_bag(tmp_path / "odd.bag", n=2, time_increment=0.01, scan_time=0.1)  # 1.79 s of sweep in a 0.1 s scan
     for name in ("plain.bag", "odd.bag"):
         assert all(f.beam_times is None for f in Ros1BagReader(tmp_path / name).frames())
+    # `slam info` says so: the sweep of 179 increments, or none
+    from slam.cli import main
+
+    for name, said in (("timed.bag", f"beam_times: yes ({179e3 * float(np.float32(inc)):.1f} ms a sweep"),
+                       ("plain.bag", "beam_times: no")):
+        with pytest.raises(SystemExit) as done:
+            main(["info", str(tmp_path / name)])
+        assert done.value.code in (0, None)
+        assert any(line.startswith(said) for line in capsys.readouterr().out.splitlines())
 
 
 def test_pointcloud_topic_in_bag(tmp_path):
