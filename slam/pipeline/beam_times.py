@@ -69,6 +69,6 @@ def read_beam_time_order(frames: Iterator[Frame], config: SlamConfig) -> tuple[S
              "beam_time_costs_m": {k: round(v / max(check.pairs, 1), 5) for k, v in check.costs.items()}}
     if check.verdict == "none":
         config = config.model_copy(update={"odometry": c.model_copy(update={"deskew": False})})
-    elif check.verdict is not None:
+    else:
         config = config.model_copy(update={"odometry": c.model_copy(update={"beam_time_order": check.verdict})})
     return config, head, stats

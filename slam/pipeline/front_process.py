@@ -49,7 +49,7 @@ def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
              "unguided_escalations": getattr(front.odometry, "unguided_escalations", 0),
              "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped,
              "slid_edges": front.slid_edges, "max_slide_m": round(front.max_slide_m, 4)}
-    if front.sweep.pairs or front.sweep.verdict is not None:
+    if front.sweep.pairs:  # the front end read the beam times' order itself (not before the run)
         stats |= {"beam_times": front.sweep.verdict or "undecided", "beam_time_pairs": front.sweep.pairs,
                   "beam_time_costs_m": {k: round(v / max(front.sweep.pairs, 1), 5) for k, v in front.sweep.costs.items()}}
     cal = front.wheel_calibration
