@@ -138,13 +138,16 @@ def test_written_bag_round_trip(tmp_path):
 
 def test_beam_times_from_time_increment(tmp_path, capsys):
     """A LaserScan's ``time_increment`` gives each beam's time after the stamp (i·increment, REP-117),
-    which the front end deskews with; a driver that leaves it 0, or states a sweep longer than its own
-    ``scan_time``, gives none."""
+    which the front end deskews with — a negative one counts from the last beam; a driver that leaves it 0,
+    or states a sweep longer than its own ``scan_time``, gives none."""
     inc = 1.0 / 75 / 360  # a SICK LMS at 75 Hz, 0.5° steps
     p = tmp_path / "timed.bag"
     write_bag(p, n=3, time_increment=inc, scan_time=1.0 / 75)
     for f in Ros1BagReader(p).frames():
         np.testing.assert_allclose(f.beam_times, np.arange(180) * float(np.float32(inc)), rtol=1e-12)
+    write_bag(tmp_path / "backwards.bag", n=2, time_increment=-inc, scan_time=1.0 / 75)  # the last beam first
+    for f in Ros1BagReader(tmp_path / "backwards.bag").frames():
+        np.testing.assert_allclose(f.beam_times, np.arange(180)[::-1] * float(np.float32(inc)), rtol=1e-12)
     write_bag(tmp_path / "plain.bag", n=2)
     write_bag(tmp_path / "odd.bag", n=2, time_increment=0.01, scan_time=0.1)  # 1.79 s of sweep in a 0.1 s scan
     for name in ("plain.bag", "odd.bag"):

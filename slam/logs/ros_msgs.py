@@ -208,15 +208,19 @@ def scan_arrays(msg: Any) -> tuple[Array, Array]:
 
 def beam_times(msg: Any, n: int) -> Array | None:
     """Each beam's time after the stamp, ``i·time_increment`` (REP-117 / sensor_msgs/LaserScan: the
-    stamp is the first beam's), or None where the driver left it out: a ``time_increment`` that is not
-    positive and finite, or a sweep (n − 1)·time_increment longer than ``scan_time`` (when given) or
-    than a second."""
+    stamp is the first beam's), or None where the driver left it out: a ``time_increment`` that is zero or
+    not finite, or a sweep (n − 1)·|time_increment| longer than ``scan_time`` (when given) or than a second.
+    A negative increment (a driver that says its last beam came first) gives the times counted from the last
+    beam; which way they really run is read from the scans before deskewing (registration.sweep_check)."""
     inc = float(getattr(msg, "time_increment", 0.0) or 0.0)
-    if not (math.isfinite(inc) and inc > 0.0):
+    if not (math.isfinite(inc) and inc != 0.0):
         return None
     period = float(getattr(msg, "scan_time", 0.0) or 0.0)
     limit = period * 1.01 if math.isfinite(period) and period > 0.0 else 1.0
-    return np.arange(n, dtype=np.float64) * inc if (n - 1) * inc <= limit else None
+    if (n - 1) * abs(inc) > limit:
+        return None
+    order = np.arange(n, dtype=np.float64)
+    return (order if inc > 0 else order[::-1]) * abs(inc)
 
 
 def check_scan(msg: Any, path: Path | str, where: str) -> None:
