@@ -42,7 +42,7 @@ def compile_all() -> None:
                  *g3.args())
     voxel_first_3d(cloud, 0.5)
     stamp_field(np.zeros(16, np.uint8), np.array([5], np.int64), np.array([0, 1], np.int64), np.array([255, 9], np.uint8))
-    branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1)
+    branch_and_bound(np.zeros((2, 4, 4), np.uint8), np.zeros((1, 3, 2), np.int32), 1, 1, 0.0, 0, 0, 0, 0, 0, 0, 0, -1, False)
 
 
 if __name__ == "__main__":

@@ -185,7 +185,7 @@ def match(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m
     if min_gain > 0 and guess_score >= min_score:
         floor = guess_score + min_gain - 1e-12  # a maximum of exactly guess + min_gain still counts
     best, best_rot, ox, oy = kernels.branch_and_bound(pyramid.grids, g.cells, top, g.w, floor, g.k, 0, 0,
-                                                      0, 0, 0, 0, -1)
+                                                      0, 0, 0, 0, -1, False)
     if best_rot == g.k and ox == 0 and oy == 0:  # nothing beat the guess (or min_score)
         return CorrelativeResult(np.asarray(guess, dtype=np.float64).copy(), guess_score, guess_score)
     res = pyramid.resolution
@@ -202,12 +202,13 @@ def _top_level(pyramid: LikelihoodPyramid, g: SearchGrid) -> int:
 
 
 def best_elsewhere(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array, window_m: float, window_rad: float,
-                   pose: Array, radius_m: float, radius_rad: float, min_score: float) -> float | None:
+                   pose: Array, radius_m: float, radius_rad: float, min_score: float, *, first: bool = False) -> float | None:
     """The best score above *min_score* in the window of :func:`match` around *guess*, leaving out the
     poses within *radius_m* (in x and in y) and *radius_rad* of the planar 4×4 *pose*; None when no pose
     elsewhere reaches *min_score* (the bound prunes the rest). A match is unique when nothing elsewhere
     scores almost as well: the ratio test of place recognition (Lowe, IJCV 2004, §7.1), here over the
-    correlative search window."""
+    correlative search window. With *first* the score of the first pose found above *min_score* (not
+    necessarily the best): a test that only asks whether one exists gets the same answer sooner."""
     g = search_grid(scan_points, pyramid, guess, window_m, window_rad)
     x, y, th = G.matrix_to_xytheta(np.asarray(pose))
     step = float(g.thetas[1] - g.thetas[0]) if len(g.thetas) > 1 else 1.0
@@ -215,7 +216,7 @@ def best_elsewhere(scan_points: Array, pyramid: LikelihoodPyramid, guess: Array,
     ex = (int(round((th - g.thetas[0]) / step)), int(round((x - g.x0) / res)), int(round((y - g.y0) / res)),
           int(np.ceil(radius_rad / step)), int(np.ceil(radius_m / res)))
     floor = float(min_score) - 1e-12
-    best, _, _, _ = kernels.branch_and_bound(pyramid.grids, g.cells, _top_level(pyramid, g), g.w, floor, -1, 0, 0, *ex)
+    best, _, _, _ = kernels.branch_and_bound(pyramid.grids, g.cells, _top_level(pyramid, g), g.w, floor, -1, 0, 0, *ex, first)
     return float(best) if best > floor else None
 
 

@@ -87,7 +87,7 @@ def score_candidates(grid, cells, rot, offsets):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
-                     ex_r, ex_x, ex_y, ex_dr, ex_dxy):  # pragma: no cover - compiled
+                     ex_r, ex_x, ex_y, ex_dr, ex_dxy, first=False):  # pragma: no cover - compiled
     """Depth-first branch and bound of ``registration.correlative.match`` (Hess et al. 2016, Algorithm 3).
 
     *grids* ``(L, H, W)`` uint8: the pyramid's max-pooled levels; *cells* ``(R, N, 2)``: the scan's
@@ -98,7 +98,10 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
     exceeds *best*. Returns the best (score, rotation, ox, oy) strictly above the starting *best*,
     or the starting values when nothing in the window beats it. With *ex_dxy* ≥ 0 the candidates within
     *ex_dr* rotations and *ex_dxy* cells (in x and in y) of (*ex_r*, *ex_x*, *ex_y*) are excluded: the
-    best pose elsewhere, for the uniqueness test of a match (blocks wholly inside are skipped)."""
+    best pose elsewhere, for the uniqueness test of a match (blocks wholly inside are skipped). With *first*
+    the search ends at the first candidate above the starting *best*, which is then returned: whether any
+    candidate beats it, decided without proving which one is the best (the same answer, since every
+    candidate above the bound is reached unless one was found before)."""
     R = cells.shape[0]
     h = 1 << top
     ng = (2 * w) // h + 1
@@ -135,6 +138,8 @@ def branch_and_bound(grids, cells, top, w, best, best_rot, best_ox, best_oy,
                 continue  # every candidate of the block is excluded
         if lv == 0:
             best, best_rot, best_ox, best_oy = bound, r, x, y
+            if first:
+                break
             continue
         half = 1 << (lv - 1)
         _score_children(grids[lv - 1], cells, r, x, y, half, children)

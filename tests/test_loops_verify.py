@@ -152,6 +152,15 @@ def test_best_elsewhere_is_the_brute_force_maximum_outside_the_excluded_neighbou
     got = correlative.best_elsewhere(pts, pyr, guess, win, win_th, best.transform, ex_m, ex_rad, 0.0)
     assert got == pytest.approx(max(scores), abs=1e-9)
     assert correlative.best_elsewhere(pts, pyr, guess, win, win_th, best.transform, ex_m, ex_rad, 1.01) is None
+    # Stopping at the first pose above the bar answers "is there one?" exactly as the full search does, at
+    # every bar, and the score it stops at is one of the poses' and above the bar.
+    for bar in np.quantile(scores, [0.0, 0.5, 0.9, 0.99]).tolist() + [max(scores), max(scores) + 1e-3]:
+        first = correlative.best_elsewhere(pts, pyr, guess, win, win_th, best.transform, ex_m, ex_rad, bar, first=True)
+        full = correlative.best_elsewhere(pts, pyr, guess, win, win_th, best.transform, ex_m, ex_rad, bar)
+        assert (first is None) == (full is None) == (max(scores) <= bar - 1e-12)
+        if first is not None:
+            assert bar - 1e-12 < first <= full + 1e-12
+            assert min(abs(np.array(scores) - first)) < 1e-9
 
 
 def test_negative_information_sees_through_walls_but_not_through_beams_that_returned_nothing():

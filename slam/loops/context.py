@@ -212,7 +212,7 @@ def path_unique(closure: LoopClosure, keyframes: list[Keyframe], poses: Array, p
             return False
         other = correlative.best_elsewhere(query, pyramid, T, UNIQUE_WINDOW_FLOORS * c.window_floor_m, np.pi, T,
                                            UNIQUE_RADIUS_CELLS * pyramid.resolution, UNIQUE_RADIUS_RAD,
-                                           c.ambiguity_ratio * own)
+                                           c.ambiguity_ratio * own, first=True)
     except DegenerateInputError:
         return False
     return other is None

@@ -221,7 +221,7 @@ class Verifier:
         pyr = self.maps.pyramid(lm, resolution, PYRAMID_LEVELS)
         pts = self.search_points(keyframes[c.j])
         try:
-            return self._elsewhere_ratio(pts, pyr, c, v.transform, cfg.ambiguity_ratio) < cfg.ambiguity_ratio
+            return self._elsewhere_ratio(pts, pyr, c, v.transform, cfg.ambiguity_ratio, cfg.ambiguity_ratio) < cfg.ambiguity_ratio
         except DegenerateInputError:
             return False
 
@@ -251,9 +251,11 @@ class Verifier:
         return self._icp.model_copy(update={"gates_m": (w,) + tuple(self._icp.gates_m)})
 
     def _elsewhere_ratio(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array,
-                         floor: float) -> float:
+                         floor: float, stop_at: float | None = None) -> float:
         """The best score in the window beyond a few cells and degrees of *T*, over *T*'s own score (0 when
-        nothing elsewhere reaches *floor* times it: the search prunes below that)."""
+        nothing elsewhere reaches *floor* times it: the search prunes below that). With *stop_at* the searches
+        end at the first pose whose ratio reaches it, and that ratio is returned (a lower bound of the best's):
+        the uniqueness test only asks whether one does, and gets the same answer."""
         own = correlative.score_at(pts, pyr, T)
         if own <= 0:
             return np.inf
@@ -261,14 +263,25 @@ class Verifier:
         xy = min(c.window.xy_m, UNIQUE_WINDOW_FLOORS * cfg.window_floor_m)
         th = np.pi  # every heading: a symmetric corridor matches itself turned round as well as straight
         radius = UNIQUE_RADIUS_CELLS * pyr.resolution
-        other = correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, UNIQUE_RADIUS_RAD, floor * own)
-        near = self._stretch_rival(pts, pyr, c, T, xy, radius, floor * own)
-        searched = self._window_rival(pts, pyr, c, T, radius, floor * own)
-        other = max((s for s in (other, near, searched) if s is not None), default=None)
-        return 0.0 if other is None else other / own
+        searches = (
+            lambda first: correlative.best_elsewhere(pts, pyr, T, xy, th, T, radius, UNIQUE_RADIUS_RAD, floor * own,
+                                                     first=first),
+            lambda first: self._stretch_rival(pts, pyr, c, T, xy, radius, floor * own, first),
+            lambda first: self._window_rival(pts, pyr, c, T, radius, floor * own, first),
+        )
+        best = None
+        for search in searches:
+            s = search(stop_at is not None)
+            if s is not None and stop_at is not None:
+                if s / own >= stop_at:
+                    return s / own
+                s = search(False)  # found within the bound's tolerance below the bar: this search's best decides
+            if s is not None:
+                best = s if best is None else max(best, s)
+        return 0.0 if best is None else best / own
 
     def _window_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, radius: float,
-                      min_score: float) -> float | None:
+                      min_score: float, first: bool = False) -> float | None:
         """The best score above *min_score* anywhere in the candidate's own search window, leaving out *T*'s
         neighbourhood; None when the window is at the floor (the three floor windows round *T* hold it), or when
         the estimate's covariance does not bound the search (a global one: its match is held to the estimate
@@ -278,10 +291,10 @@ class Verifier:
         if c.max_mahalanobis2 is not None or c.window.xy_m <= self.config.window_floor_m:
             return None
         return correlative.best_elsewhere(pts, pyr, c.guess, c.window.xy_m, c.window.theta_rad, T, radius,
-                                          UNIQUE_RADIUS_RAD, min_score)
+                                          UNIQUE_RADIUS_RAD, min_score, first=first)
 
     def _stretch_rival(self, pts: Array, pyr: correlative.LikelihoodPyramid, c: Candidate, T: Array, xy: float,
-                       radius: float, min_score: float) -> float | None:
+                       radius: float, min_score: float, first: bool = False) -> float | None:
         """The best score above *min_score* on the stretch between the match *T* and the estimate's pose (plus
         one floor window, the heading half-way), leaving out *T*'s neighbourhood; None when the ±*xy* box
         round *T* already holds the estimate's floor window, when the two headings differ by more than the
@@ -304,7 +317,7 @@ class Verifier:
         mid = G.xytheta_to_matrix(np.array([*(est[:2] + mine[:2]) / 2, mine[2] + d_th / 2]))
         return correlative.best_elsewhere(pts, pyr, mid, float(half.max()) + cfg.window_floor_m,
                                           abs(d_th) / 2 + np.radians(cfg.window_floor_deg),
-                                          T, radius, UNIQUE_RADIUS_RAD, min_score)
+                                          T, radius, UNIQUE_RADIUS_RAD, min_score, first=first)
 
     def _covariance(self, res: IcpResult, kj: Keyframe) -> Array:
         """ICP covariance (sensor frame) at max(a-priori, a-posteriori) residual variance, plus the floor."""
