@@ -19,9 +19,13 @@ def detect_format(path: str | Path) -> str:
     if not p.exists():
         raise LogFormatError(p, None, "no such file or directory")
     if p.is_dir():
+        if (p / "metadata.yaml").is_file():
+            rosbag2_file(p)
+            return "mcap"
         if (p / "velodyne").is_dir() or any(p.glob("*.bin")):
             return "kitti"
-        raise LogFormatError(p, None, "directory is not a KITTI sequence (no velodyne/ folder or .bin files)")
+        raise LogFormatError(p, None, "directory is neither a ROS 2 bag (metadata.yaml) nor a KITTI sequence "
+                                      "(velodyne/ folder or .bin files)")
     if p.suffix == ".bin":
         return "kitti"
     name = p.name.lower()
@@ -42,12 +46,29 @@ def detect_format(path: str | Path) -> str:
     raise LogFormatError(p, None, "unknown log format (expected .clf/.log[.bz2|.gz], .mcap, .bag or a KITTI sequence)")
 
 
+def rosbag2_file(folder: Path) -> Path:
+    """The storage file of a ROS 2 bag folder (``metadata.yaml`` beside it): its one ``.mcap`` file, read as any
+    MCAP log. A bag in SQLite storage (``.db3``, the default before ROS 2 Iron) or split into several files is
+    refused with what to do instead (raises LogFormatError naming the folder)."""
+    mcaps = sorted(folder.glob("*.mcap"))
+    if len(mcaps) == 1:
+        return mcaps[0]
+    if len(mcaps) > 1:
+        raise LogFormatError(folder, None, f"a ROS 2 bag split into {len(mcaps)} MCAP files "
+                                           f"({mcaps[0].name} …); give one file, or merge them with `ros2 bag convert`")
+    if any(folder.glob("*.db3")):
+        raise LogFormatError(folder, None, "a ROS 2 bag in SQLite storage (.db3) is not read; convert it to MCAP with "
+                                           "`ros2 bag convert` (output storage_id: mcap)")
+    raise LogFormatError(folder, None, "a ROS 2 bag folder (metadata.yaml) without an .mcap file")
+
+
 def open_log(path: str | Path, topic: str | None = None) -> LogReader:
     """Open a robot log of any supported format as a streaming :class:`LogReader`.
 
     Args:
-        path: a CARMEN log (``.clf``/``.log``, optionally ``.bz2``/``.gz``), an MCAP file, a ROS 1
-            bag, or a KITTI sequence folder (``sequences/NN`` with ``velodyne/`` and ``calib.txt``).
+        path: a CARMEN log (``.clf``/``.log``, optionally ``.bz2``/``.gz``), an MCAP file (or the folder of a
+            ROS 2 bag stored as MCAP: :func:`rosbag2_file`), a ROS 1 bag, or a KITTI sequence folder
+            (``sequences/NN`` with ``velodyne/`` and ``calib.txt``).
         topic: the sensor topic to read (MCAP / ROS 1); auto-detected when None.
     """
     fmt = detect_format(path)
@@ -58,7 +79,7 @@ def open_log(path: str | Path, topic: str | None = None) -> LogReader:
     if fmt == "mcap":
         from .mcap_reader import McapReader
 
-        return McapReader(path, topic)
+        return McapReader(rosbag2_file(Path(path)) if Path(path).is_dir() else path, topic)
     if fmt == "ros1":
         from .rosbag1 import Ros1BagReader
 
