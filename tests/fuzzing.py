@@ -3,7 +3,7 @@ tests (``tests/test_fuzz_readers.py``, a few dozen cases per format) and the cam
 (``benchmarks/fuzz_campaign.py``, thousands).
 
 A case takes a small valid seed file of one format (CARMEN, g2o, TORO, TUM, KITTI, relations, MCAP, ROS 1
-bag), damages it (bytes flipped, zeroed or inserted, the file cut), runs the command that reads it whole
+bag, the SQLite file of a ROS 2 bag, read in its folder), damages it (bytes flipped, zeroed or inserted, the file cut), runs the command that reads it whole
 in this process, and classifies the outcome. Allowed: ``ok`` (exit 0, and what it reports agrees with an
 independent count of the damaged file: no silently different graph size or scan count) and ``error``
 (exit 2 with exactly one ``error:`` line). Anything else is a finding: ``traceback`` (an exception
@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-FORMATS = ("carmen", "g2o", "toro", "tum", "kitti", "relations", "mcap", "bag")
+FORMATS = ("carmen", "g2o", "toro", "tum", "kitti", "relations", "mcap", "bag", "ros2")
 MUTATIONS = ("flip", "bit", "zero", "insert", "delete", "truncate")
 ALLOWED = ("ok", "error")
 
@@ -138,20 +138,44 @@ def _mcap_oracle(data: bytes, stdout: str) -> str | None:
     return None if scans == str(n) else f"scans {scans}, the mcap library reads {n} {topic} messages"
 
 
+def _rosbags_count(stdout: str, open_reader: Callable[[], object]) -> str | None:
+    """Only where rosbags reads the damaged container whole: the same number of sensor messages as reported."""
+    topic, scans = _field(stdout, "sensor_topic"), _field(stdout, "scans")
+    try:
+        with open_reader() as r:  # type: ignore[attr-defined]
+            n = sum(1 for c, _, _ in r.messages() if c.topic == topic)
+    except Exception:  # noqa: BLE001 - the library cannot tell: no independent count
+        return None
+    return None if scans == str(n) else f"scans {scans}, rosbags reads {n} {topic} messages"
+
+
 def _bag_oracle(data: bytes, stdout: str) -> str | None:
-    """Only where rosbags reads the damaged bag whole: the same number of sensor messages."""
     from rosbags.rosbag1 import Reader
 
-    topic, scans = _field(stdout, "sensor_topic"), _field(stdout, "scans")
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "b.bag"
         p.write_bytes(data)
-        try:
-            with Reader(p) as r:
-                n = sum(1 for c, _, _ in r.messages() if c.topic == topic)
-        except Exception:  # noqa: BLE001
-            return None
-    return None if scans == str(n) else f"scans {scans}, rosbags reads {n} {topic} messages"
+        return _rosbags_count(stdout, lambda: Reader(p))
+
+
+def _ros2_oracle(data: bytes, stdout: str) -> str | None:
+    from rosbags.rosbag2 import Reader
+
+    return _rosbags_count(stdout, lambda: Reader(Path(_field(stdout, "file") or "")))
+
+
+def _in_bag_folder(metadata: bytes, db3_name: str) -> Callable[[Path], list[str]]:
+    """The command for a (damaged) SQLite file: ``slam info`` on a fresh bag folder holding it under its own name
+    beside the seed bag's metadata.yaml."""
+    def args(p: Path) -> list[str]:
+        folder = p.parent / "case_bag"
+        folder.mkdir(exist_ok=True)
+        for old in folder.iterdir():
+            old.unlink()
+        (folder / "metadata.yaml").write_bytes(metadata)
+        (folder / db3_name).write_bytes(p.read_bytes())
+        return ["info", str(folder)]
+    return args
 
 
 # ----------------------------------------------------------------------------- seeds
@@ -173,6 +197,7 @@ def seeds(workdir: Path) -> dict[str, list[Seed]]:
     from tests.test_logs_carmen import synthetic_log
     from tests.test_logs_mcap import write_basic_log
     from tests.test_logs_rosbag1 import write_bag
+    from tests.test_logs_rosbag2 import write_rosbag2
 
     rng = np.random.default_rng(27)
     out: dict[str, list[Seed]] = {}
@@ -205,11 +230,15 @@ def seeds(workdir: Path) -> dict[str, list[Seed]]:
     out["relations"] = [Seed("relations", ".relations", rel.encode(),
                              lambda p: ["eval", "relations", str(traj), str(p)], _relations_oracle)]
 
-    out["mcap"], out["bag"] = [], []
+    out["mcap"], out["bag"], out["ros2"] = [], [], []
     for comp in ("zstd", "lz4", "none"):
         p = workdir / f"seed_{comp}.mcap"
         write_basic_log(p, n=15, chunk_size=4096, compression=comp)
         out["mcap"].append(Seed("mcap", ".mcap", p.read_bytes(), lambda p: ["info", str(p)], _mcap_oracle))
+    write_rosbag2(workdir / "seed_none.mcap", workdir / "seed_ros2")
+    db3 = next((workdir / "seed_ros2").glob("*.db3"))
+    out["ros2"].append(Seed("ros2", ".db3", db3.read_bytes(),
+                            _in_bag_folder((workdir / "seed_ros2" / "metadata.yaml").read_bytes(), db3.name), _ros2_oracle))
     for comp in ("bz2", "lz4", None):
         p = workdir / f"seed_{comp or 'none'}.bag"
         write_bag(p, n=15, compression=comp, chunk_threshold=6000)

@@ -13,43 +13,22 @@ decompressed chunk at a time; the frame assembly itself is streaming (see
 
 from __future__ import annotations
 
-import contextlib
 import heapq
-from pathlib import Path
 from typing import Any, Iterator
 
 from core.errors import LogFormatError
 
 from .base import SkipHandler, TopicInfo, lost
 from .ros_msgs import RawMessage, build_typestore, normalize_msgtype
-from .ros_reader import RosLogReader
+from .rosbags_container import RosbagsReader
 
 __all__ = ["Ros1BagReader"]
 
 
-class Ros1BagReader(RosLogReader):
+class Ros1BagReader(RosbagsReader):
     """Stream a ROS 1 ``.bag`` file as Frames (see :class:`RosLogReader` for the arguments)."""
 
     format = "ros1"
-
-    def __init__(self, path: str | Path, topic: str | None = None, **kwargs: Any) -> None:
-        super().__init__(path, topic, **kwargs)
-        self._topics: list[TopicInfo] | None = None
-        self._store = None
-        self._shared: Any = None  # an open rosbags Reader during one frames() call
-
-    @contextlib.contextmanager
-    def _session(self) -> Iterator[None]:
-        """Open the bag (and parse its index) once for all passes of a frames() call."""
-        if self._shared is not None:
-            yield
-            return
-        self._shared = self._open()
-        try:
-            yield
-        finally:
-            reader, self._shared = self._shared, None
-            reader.close()
 
     def _open(self):
         from rosbags.rosbag1 import Reader
@@ -83,11 +62,6 @@ class Ros1BagReader(RosLogReader):
             self._topics = [TopicInfo(name, mt, n) for name, (mt, n) in sorted(counts.items())]
         finally:
             reader.close()
-
-    def topics(self) -> list[TopicInfo]:
-        self._load_meta()
-        assert self._topics is not None
-        return list(self._topics)
 
     def _raw_messages(self, topics: set[str] | None, on_skip: SkipHandler | None = None) -> Iterator[RawMessage]:
         """Messages in time order. A chunk rosbags cannot read (corrupt, truncated: no checksum guards a
