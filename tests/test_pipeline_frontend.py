@@ -145,6 +145,59 @@ def test_wheel_calibration_measures_against_the_own_covariance_where_the_margins
     assert cal.scale_rotation == pytest.approx(k_r, rel=0.1)
 
 
+def _heading_innovations(rng, n, k_r, bias_per_sigma=0.0):
+    """*n* heading innovations: each N(μ, A + k_r² B) with A, B random per interval and a mean μ of
+    *bias_per_sigma* of the interval's σ at the true scale (a wheel error that repeats)."""
+    for _ in range(n):
+        A = np.diag([1e-5, 1e-5, rng.uniform(0.5, 2.0) * 1e-6])
+        B = np.diag([1e-4, 1e-4, rng.uniform(0.5, 2.0) * 1e-5])
+        sigma = np.sqrt(A[2, 2] + k_r**2 * B[2, 2])
+        d = np.r_[rng.normal(0.0, np.sqrt(A[0, 0] + B[0, 0]), 2), rng.normal(bias_per_sigma * sigma, sigma)]
+        yield d, A, B
+
+
+def _calibrated(rows, chain_test: bool = True) -> NoiseScaleCalibration:
+    import slam.noise_scale as ns
+
+    runs, ns.CHAIN_MIN_RUNS = ns.CHAIN_MIN_RUNS, (ns.CHAIN_MIN_RUNS if chain_test else 10**9)
+    try:
+        cal = NoiseScaleCalibration(2)
+        for d, A, B in rows:
+            cal.add(d, A, B)
+    finally:
+        ns.CHAIN_MIN_RUNS = runs
+    return cal
+
+
+def test_white_wheel_innovations_keep_the_per_interval_rotation_scale():
+    """Heading innovations that are white (independent, zero mean): the test over runs of consecutive ones
+    rejects at most at its false-alarm rate (≤ 1 % per run length; 5 run lengths at 2000 samples), so in at
+    least 17 of 20 logs the rotation scale is the per-interval fit's."""
+    kept = 0
+    for seed in range(20):
+        rows = list(_heading_innovations(np.random.default_rng(100 + seed), 2000, 0.7))
+        kept += _calibrated(rows).scale_rotation == _calibrated(rows, chain_test=False).scale_rotation
+    assert kept >= 17
+
+
+@pytest.mark.parametrize("bias", [0.3, 0.6])
+def test_a_wheel_error_that_repeats_widens_the_rotation_scale_until_runs_of_intervals_agree(bias):
+    """Heading innovations with a mean of 0.3 or 0.6 σ per interval: one interval's χ² hides it (the
+    per-interval scale widens a little), but over runs of L intervals the mean grows L-fold against a σ
+    that grows √L-fold. The calibrated scale then makes the sums over the longest runs tested (L = 64,
+    31 runs) consistent — their mean NEES within [0.5, 2], the band of the NEES tables — where at the
+    per-interval scale it is several times the dimension."""
+    rows = list(_heading_innovations(np.random.default_rng(8), 2000, 0.7, bias))
+    cal, per_interval = _calibrated(rows), _calibrated(rows, chain_test=False).scale_rotation
+    d = np.array([r[0][2] for r in rows])[:1984].reshape(-1, 64).sum(1)
+    a = np.array([r[1][2, 2] for r in rows])[:1984].reshape(-1, 64).sum(1)
+    b = np.array([r[2][2, 2] for r in rows])[:1984].reshape(-1, 64).sum(1)
+    assert np.mean(d**2 / (a + per_interval**2 * b)) > 3.0
+    assert 0.5 <= np.mean(d**2 / (a + cal.scale_rotation**2 * b)) <= 2.0
+    assert cal.scale_rotation > 1.5 * per_interval
+    assert cal.scale_translation == _calibrated(rows, chain_test=False).scale_translation  # not tested on runs
+
+
 def test_wheel_calibration_waits_for_its_samples_and_stays_within_its_bounds():
     cal = NoiseScaleCalibration(2, min_samples=10, bounds=(0.05, 10.0))
     A, B = np.eye(3) * 1e-4, np.eye(3) * 1e-4

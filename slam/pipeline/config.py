@@ -95,7 +95,7 @@ class OdometryStageConfig(_Model):
     wheel_sigma_m_per_rad: float = Field(0.15, ge=0, description="translation σ per radian turned (a turn in place moves the base a little; with 0 the model gives such a turn millimetres)")
     wheel_gate_probability: float | None = Field(0.999, gt=0, lt=1, description="a wheel edge whose disagreement with the registration edge exceeds this χ² quantile (Mahalanobis, both covariances) is left out: wheel odometry logged in lumps can say 0° over a keyframe the robot turned 40° in; None keeps every wheel edge")
     wheel_gate_lumpy_only: bool = Field(True, description="... but only when the wheels were lumpy in the interval (the ICP odometry took its constant-velocity start); over smooth wheels the registration slid (a corridor), and the wheel edge stays")
-    wheel_calibration: bool = Field(True, description="scale the wheel model per block (translation, rotation) online so that the wheel-vs-registration disagreement has its expected χ² mean (slam.noise_scale); the fitted scales are in summary.json (odometry_stats)")
+    wheel_calibration: bool = Field(True, description="scale the wheel model per block (translation, rotation) online so that the wheel-vs-registration disagreement has its expected χ² mean, per keyframe interval and, for the heading, summed over runs of consecutive intervals (slam.noise_scale); the fitted scales are in summary.json (odometry_stats)")
     wheel_calibration_min_edges: int = Field(50, ge=1, description="wheel edges before the calibration starts (until then the model as configured)")
 
 
