@@ -231,6 +231,9 @@ def run(
     if reference is not None:
         typer.echo(f"report: {(out / 'report.html').resolve()}")
     typer.echo(f"results: {out.resolve()}")
+    if s.get("stamps_not_increasing"):
+        typer.echo(f"warning: {s['stamps_not_increasing']} of {s['scans']} scans of {log} are stamped no later than "
+                   "the scan before (the log's stamps are rounded or out of order); the outputs keep them as read", err=True)
     if s["errors"]:
         recs = s["skipped_records"] if s["skipped_records"] is not None else "an unknown number of"
         n = s["skipped_scans"]

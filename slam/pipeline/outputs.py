@@ -97,6 +97,7 @@ def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wa
         wall_time_s=wall_time_s, scans_per_second=n / run_s if run_s > 0 else 0.0,
         peak_memory_mb=sum(peaks.values()), peak_memory_by_process_mb=peaks,
         versions=_versions(), config=config.model_dump(mode="json"),
+        stamps_not_increasing=int(np.count_nonzero(np.diff(np.asarray(result.stamps, dtype=float)) <= 0.0)),
     )
 
 
