@@ -21,7 +21,7 @@ An error that repeats from interval to interval (a turn gain, unequal wheel diam
 widens the per-interval fit a little, but it adds up along the path, and a pose graph of independent
 edges then trusts the model over long stretches more than it may. So the rotation scale is also tested
 on sums over runs of consecutive innovations (whiteness: their NEES must not grow with the run's length)
-and raised where they reject it (on the Intel log the heading sums over 64 intervals disagree 11.6 ×
+and raised where they reject it (in a measured case the heading sums over 64 intervals disagree 11.6 ×
 their expected χ², and the scale goes 0.92 → 3.13; docs/ODOMETRY.md "The wheels' systematic errors").
 The mean of such an error is not corrected: against the scans alone it cannot be told from the
 registration's own (measured there).
