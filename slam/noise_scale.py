@@ -119,9 +119,10 @@ class NoiseScaleCalibration:
         Runs of L = 2, 4, 8, … consecutive samples (while there are at least ``CHAIN_MIN_RUNS`` of them):
         where ``Σ (Σδ)ᵀ (ΣA + k²ΣB)⁻¹ (Σδ)`` over the runs exceeds its χ² quantile at ``CHAIN_PROBABILITY``,
         the model's error accumulates beyond white noise, and *k* becomes the scale that fits the runs'
-        sums (never lowered; not where that would pass the upper bound). Heading innovations add along a path exactly in the plane (to first order in
-        3D); translation ones are each in their own interval's frame and do not, so the translation block
-        is not tested."""
+        sums (never lowered; not where that would pass the upper bound). Heading innovations add along a
+        path exactly in the plane (to first order in 3D); translation ones are each in their own
+        interval's frame and do not, so the translation block is not tested (tried with each turned into
+        the run's frame: docs/ODOMETRY.md)."""
         from scipy.stats import chi2
 
         dim = d.shape[1]
