@@ -74,10 +74,10 @@ def wrong_steps(poses: np.ndarray, reference: np.ndarray) -> int:
                       | (np.degrees(np.abs(np.arctan2(e[:, 1, 0], e[:, 0, 0]))) > STEP_TOL[1])))
 
 
-def pair(name: str, original: Path, corrected: Path, reference: Path, folder: Path) -> dict:
+def pair(name: str, original: Path, corrected: Path, reference: Path, folder: Path, config: Path) -> dict:
+    """Both runs of one log (unless *folder* holds them) and the scores of the scan-only one; *config* the
+    scan-only configuration file."""
     wheel_run, scan_run = folder / f"{name}_wheels", folder / f"{name}_scan_only"
-    config = folder / "scan_only.yaml"
-    config.write_text(SCAN_ONLY)
     if not (wheel_run / "summary.json").exists():
         slam("run", str(original), "--out", str(wheel_run), "--quiet", "--map", "none")
     if not (scan_run / "summary.json").exists():
@@ -109,7 +109,9 @@ def main() -> None:
     args = ap.parse_args()
 
     def collect(folder: Path) -> list[dict]:
-        return [pair(n, args.data / o, args.data / c, args.data / r, folder) for n, o, c, r in PAIRS]
+        config = folder / "scan_only.yaml"
+        config.write_text(SCAN_ONLY)
+        return [pair(n, args.data / o, args.data / c, args.data / r, folder, config) for n, o, c, r in PAIRS]
 
     def summarise(rows: list[dict]) -> dict:
         return {r["log"]: {"precision_kept_against_wheel_run": r["precision_kept_against_wheel_run"],
