@@ -30,7 +30,6 @@ and the a-posteriori residual variance (the a-posteriori variance factor), plus 
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,7 +38,7 @@ from scipy.stats import chi2
 
 from core import geometry as G
 from core.errors import DegenerateInputError
-from registration import correlative
+from registration import correlative, free_space
 from registration.alignment import IcpResult, evaluate_alignment
 from registration.config import IcpConfig
 from registration.icp import icp
@@ -335,51 +334,9 @@ def _sigma2(res: IcpResult) -> float:
 
 def free_space_violation(points_in_sensor: Array, keyframe: Keyframe, margin: float = 0.1,
                          rel_margin: float = 0.02, min_inside: float = 0.0) -> float:
-    """Fraction of *points* (in *keyframe*'s sensor frame) lying in the free space its beams saw.
-
-    A point at bearing φ and range r violates the scan when the beam at φ returned beyond
-    ``r + margin + rel_margin·r``: the two scans cannot both be right — the negative-information
-    test of 2D scan matching (Olson, "Real-time correlative scan matching", ICRA 2009, §III-B).
-    A beam that returned nothing says nothing (dark or glancing surfaces drop out: half the beams
-    of a Hokuyo URG-04LX in a cluttered lab, a third of a SICK's outdoors), and points outside the
-    field of view are ignored. Returns 0 when no point falls on a returned beam, or fewer than
-    *min_inside* of the points (a fraction) do: too little overlap to say anything.
-    """
-    frame = keyframe.frame
-    if frame.angles is None or frame.ranges is None or len(frame.angles) < 2:
-        return 0.0
-    a, near, dropped, inc = _beams_by_angle(frame)
-    phi = np.arctan2(points_in_sensor[:, 1], points_in_sensor[:, 0])
-    r = np.hypot(points_in_sensor[:, 0], points_in_sensor[:, 1])
-    # The nearest beam by angle (a reader may have left out beams, so the angles need not be uniform).
-    hi_ = np.clip(np.searchsorted(a, phi), 1, len(a) - 1)
-    k = np.where(np.abs(phi - a[hi_ - 1]) <= np.abs(a[hi_] - phi), hi_ - 1, hi_)
-    inside = (np.abs(phi - a[k]) <= 0.5 * abs(inc) + 1e-9) & ~dropped[k]
-    n_in = int(np.count_nonzero(inside))
-    if n_in == 0 or n_in < min_inside * len(inside):
-        return 0.0
-    # The shortest return of the beam and its two neighbours: a wall seen at a glancing angle changes
-    # range quickly from beam to beam, and a point between two beams is not contradicted by one of them.
-    lo, hi = np.clip(k - 1, 0, len(a) - 1), np.clip(k + 1, 0, len(a) - 1)
-    shortest = np.minimum(np.minimum(near[lo], near[k]), near[hi])
-    viol = inside & (shortest > r + margin + rel_margin * r)
-    return float(viol.sum() / n_in)
-
-
-#: each scan's beams in angle order, made once per frame: the test above runs ~20 times per keyframe
-_BEAMS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
-def _beams_by_angle(frame) -> tuple[Array, Array, Array, float]:  # type: ignore[no-untyped-def]
-    """*frame*'s beams sorted by angle: angles (rad), ranges (m, ``inf`` where the beam returned nothing),
-    the no-return mask, and the median angular increment (rad); cached per frame."""
-    got = _BEAMS.get(frame)
-    if got is None:
-        order = np.argsort(frame.angles)
-        a, dropped = frame.angles[order], frame.no_return[order]
-        got = a, np.where(dropped, np.inf, frame.ranges[order]), dropped, float(np.median(np.diff(a)))
-        _BEAMS[frame] = got
-    return got
+    """Fraction of *points* (in *keyframe*'s sensor frame) lying in the free space its beams saw
+    (:func:`registration.free_space.violation`, Olson 2009 §III-B)."""
+    return free_space.violation(points_in_sensor, keyframe.frame, margin, rel_margin, min_inside)
 
 
 def free_space_violation_both(i_T_j: Array, kj: Keyframe, ki: Keyframe) -> float:
