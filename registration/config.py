@@ -176,6 +176,11 @@ class IcpOdometryConfig(_Frozen):
     #: twice the distance and every heading, around the guess and around the last pose; its result is
     #: kept when it scores better by the same factor. None = never.
     unguided_escalation: float | None = Field(0.8, gt=0.0, le=1.0)
+    #: A candidate of the widened search is passed over while another does not contradict the local map:
+    #: the larger mean fraction of its points in the map scans' observed free space, or of theirs in its own,
+    #: above this (negative information, Olson 2009 §III-B; the loop verifier's and the self-check's limit).
+    #: None = candidates by score alone.
+    unguided_max_contradiction: float | None = Field(None, gt=0.0, le=1.0)
     #: The first registration without wheel odometry has no velocity to start from: a log that begins in
     #: motion is a whole scan interval's travel away from the identity guess (3 m at 30 m/s and 10 Hz),
     #: beyond the first gate. That step runs this gate before the configured ones (m; KISS-ICP's first

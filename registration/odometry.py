@@ -41,6 +41,7 @@ from .config import IcpConfig, IcpOdometryConfig
 from .icp import icp
 from .point_to_plane import PosePrior, icp_point_to_plane
 from .target import IcpTarget
+from .unguided import UnguidedPlacement
 from .voxel import voxel_downsample
 from .wheel_lag import WheelSpeeds, wheels_lag
 
@@ -186,15 +187,25 @@ class IcpOdometry(Odometry):
         self._map_pose: Array | None = None
         self._target: IcpTarget | None = None  # k-d tree (and normals) of the current map, reused until it changes
         self._target_scans = 0  # how many of the last map scans the target (and the pyramid) hold
-        self._unguided_scores: deque[float] = deque(maxlen=50)  # best scores of the last unguided searches
-        self.unguided_escalations = 0  # searches repeated over every heading
-        self._pyramid = None  # likelihood pyramid of the current map (the search without wheel odometry), likewise
+        # (world_T_sensor, frame) of each map scan, the frame None without beam geometry (its free space unknown)
+        self._map_scans_seen: deque[tuple[Array, Frame | None]] = deque(maxlen=self._map.maxlen)
+        self._unguided = UnguidedPlacement(c)  # the search without wheel odometry, on the current map
         self.alternative_starts = 0  # scans that also ran ICP from the constant-velocity start (lumpy wheel odometry)
         self._prev_wheel: tuple[Array, float] | None = None  # previous wheel increment and its interval (s)
         self._wheel_speeds = WheelSpeeds()  # the wheels' typical increment, for the lag test
         g = self.config.first_step_gate_m  # the first registration without wheels: a wider gate first
         self._first_icp = (self.config.icp.model_copy(update={"gates_m": (g,) + tuple(self.config.icp.gates_m)})
                            if g is not None and g > self.config.icp.gates_m[0] else None)
+
+    @property
+    def unguided_escalations(self) -> int:
+        """Placements without wheel odometry whose search was widened to every heading."""
+        return self._unguided.escalations
+
+    @property
+    def unguided_contradicted(self) -> int:
+        """Widened searches whose best-scoring pose contradicted the local map and was passed over."""
+        return self._unguided.contradicted
 
     def _map_scans(self, guided: bool) -> int:
         """How many of the last map scans form the map of a scan registered with (*guided*) or without the wheel guess."""
@@ -251,39 +262,6 @@ class IcpOdometry(Odometry):
                 return None  # the wheels move as they did: they are not lumpy here
         return constant_velocity
 
-    def _place_unguided(self, pts: Array, guess: Array) -> Array:
-        """Without wheel odometry (2D): the best pose of a correlative search of the configured window around
-        the constant-velocity *guess* on the local map, when it scores better than the guess; a poor best
-        (``unguided_escalation``) repeats the search over twice the distance and every heading, whose best
-        replaces it when it scores higher by the same factor."""
-        from . import correlative
-
-        cfg = self.config
-        if self._pyramid is None:
-            window = int(np.ceil(2 * cfg.unguided_window_m / cfg.unguided_resolution_m))
-            levels = int(min(6, np.ceil(np.log2(2 * window + 1))))
-            self._pyramid = correlative.LikelihoodPyramid(self._map_points(False)[:, :2], cfg.unguided_resolution_m,
-                                                          cfg.unguided_resolution_m, levels=levels)
-        try:
-            found = correlative.match(pts[:, :2], self._pyramid, planar_pose(guess), cfg.unguided_window_m,
-                                      cfg.unguided_window_rad or 0.0)
-            typical = float(np.median(self._unguided_scores)) if len(self._unguided_scores) >= 5 else None
-            if cfg.unguided_escalation is not None and typical is not None and found.score < cfg.unguided_escalation * typical:
-                self.unguided_escalations += 1
-                # The wider search must restore what the window lost (beat it by the same factor): a corridor
-                # seen the other way round scores a little better than a poor but right pose.
-                bar = found.score / cfg.unguided_escalation
-                for centre in (guess, self._pose):
-                    wide = correlative.match(pts[:, :2], self._pyramid, planar_pose(centre), 2 * cfg.unguided_window_m,
-                                             np.pi, min_score=bar)
-                    if wide.score > bar:
-                        found = correlative.CorrelativeResult(wide.transform, wide.score, found.guess_score)
-                        bar = wide.score
-        except DegenerateInputError:
-            return guess
-        self._unguided_scores.append(found.score)
-        return found.transform if found.score > found.guess_score else guess
-
     def _disagree(self, a: Array, b: Array) -> bool:
         """Increments *a* and *b* differ by more than ``alternative_start_m`` or ``alternative_start_rad``."""
         c = self.config
@@ -336,6 +314,7 @@ class IcpOdometry(Odometry):
         pts = _crop(frame.points, cfg.min_range_m, cfg.max_range_m)
         if self._prev_frame is None:
             self._map.append(voxel_downsample(pts, cfg.map_voxel_m))
+            self._map_scans_seen.append((np.eye(4), frame if frame.ranges is not None else None))
             self._map_pose = np.eye(4)
             return self._emit(frame, np.eye(4), None, None)
         prediction = self._guess(frame, self.use_wheel_odometry)
@@ -344,10 +323,12 @@ class IcpOdometry(Odometry):
         scans = self._map_scans(guided)
         if self._target is None or self._target_scans != scans:
             self._target = IcpTarget(self._map_points(guided), None, cfg.icp.normal_neighbors, cfg.icp.workers)
-            self._target_scans, self._pyramid = scans, None
+            self._target_scans = scans
+            self._unguided.reset()
         target = self._target
         if not guided and frame.is_planar and cfg.unguided_window_m is not None:
-            guess = self._place_unguided(pts, guess)
+            seen = [(p, f) for p, f in list(self._map_scans_seen)[-self._map_scans(False):] if f is not None]
+            guess = self._unguided.place(pts, frame, guess, self._pose, lambda: self._map_points(False), seen)
         alt = self._alternative_start(frame, prediction)
         # The wheels as a prior only where they are smooth: lumpy ones are a wrong guess.
         prior = self._prior(guess, prediction, frame.dim) if guided and alt is None else None
@@ -375,7 +356,8 @@ class IcpOdometry(Odometry):
         if (not guided and cfg.unguided_map_scans is not None) or (
                 cfg.map_step_m == 0.0 or np.linalg.norm(moved[:3, 3]) >= cfg.map_step_m or turned >= cfg.map_step_rad):
             self._map.append(geo.transform_points(pose, voxel_downsample(pts, cfg.map_voxel_m)))
+            self._map_scans_seen.append((pose, frame if frame.ranges is not None else None))
             self._map_pose = pose
             self._target = None
-            self._pyramid = None
+            self._unguided.reset()
         return self._emit(frame, pose, cov, accepted)

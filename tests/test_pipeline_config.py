@@ -108,7 +108,7 @@ DIMENSIONLESS = {
     "trim_fraction", "chi2_factor", "false_rejection_rate", "alternative_start_min_gain", "unguided_escalation",
     "convergence_criterion", "edge_ambiguity_ratio", "wheel_gate_probability", "window_sigmas",
     "descriptor_max_distance", "min_relative_score", "min_relative_fitness", "max_relative_rmse",
-    "max_free_space_violation", "consistency_probability", "ambiguity_ratio", "relocalise_sigmas", "robust_scale",
+    "max_free_space_violation", "unguided_max_contradiction", "consistency_probability", "ambiguity_ratio", "relocalise_sigmas", "robust_scale",
     "isam2_relinearize_threshold", "lone_odometry_kernel_sigmas", "squash_alpha", "squash_beta",
     "occupied_thresh", "free_thresh", "nu", "sigma_f", "sigma_n", "stop_before_hit", "region_a_mean",
     "region_a_variance", "l_occ", "l_free", "l_min", "l_max",

@@ -25,13 +25,15 @@ class _Model(BaseModel):
 # The odometry defaults of the pipeline (docs/ODOMETRY.md has the evidence for each).
 #: Planar scans, our ICP: point-to-line steps from the wheel guess through one 0.3 m gate with a Cauchy
 #: kernel, a local map at 3 cm of 30 scans spaced 0.5 m or 0.2 rad apart (without wheels: the last 10 scans);
-#: a step 0.3 m / 0.35 rad off the wheel guess is a failure; without wheels, a ±1 m / ±30° correlative search first.
+#: a step 0.3 m / 0.35 rad off the wheel guess is a failure; without wheels, a ±1 m / ±30° correlative search first,
+#: whose widened search passes over a pose that contradicts the local map's free space by more than 15 %.
 PLANAR_ICP = IcpOdometryConfig(
     icp=IcpConfig(gates_m=(0.3,), max_iterations=30, tol_translation_m=5e-4, tol_rotation_rad=5e-4, robust="cauchy",
                   robust_scale_m=0.05, workers=1),
     map_scans=30, unguided_map_scans=10, point_to_plane=True, map_voxel_m=0.03, map_step_m=0.5, map_step_rad=0.2,
     max_range_m=30.0, min_range_m=0.05, max_guess_deviation_m=0.3, max_guess_deviation_rad=0.35, alternative_start_m=0.05,
-    alternative_start_rad=0.05, unguided_window_m=1.0, unguided_window_rad=float(np.radians(30.0)))
+    alternative_start_rad=0.05, unguided_window_m=1.0, unguided_window_rad=float(np.radians(30.0)),
+    unguided_max_contradiction=0.15)
 #: 3D clouds, our ICP: coarse-to-fine gates on 0.5 m voxels against a 0.3 m local map of the last 10 scans.
 SPATIAL_ICP = PLANAR_ICP.model_copy(update={
     "icp": IcpConfig(gates_m=(1.5, 0.6, 0.3), voxel_m=0.5, robust="cauchy", robust_scale_m=0.2),

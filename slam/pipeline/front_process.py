@@ -47,6 +47,7 @@ class FrontEndSummary:
 def _summary(front: FrontEnd, odometry_s: float) -> FrontEndSummary:
     stats = {"alternative_starts": getattr(front.odometry, "alternative_starts", 0),
              "unguided_escalations": getattr(front.odometry, "unguided_escalations", 0),
+             "unguided_contradicted": getattr(front.odometry, "unguided_contradicted", 0),
              "wheel_edges": len(front.wheel_edges), "wheel_edges_dropped": front.wheel_edges_dropped,
              "slid_edges": front.slid_edges, "max_slide_m": round(front.max_slide_m, 4)}
     if front.sweep.pairs:  # the front end read the beam times' order itself (not before the run)
