@@ -83,31 +83,32 @@ class UnguidedPlacement:
         (beat its best by the escalation factor): a corridor seen the other way round scores a little better
         than a poor but right pose. Where candidates that do not contradict the map exist, only they compete."""
         cfg = self.config
-        factor = cfg.unguided_escalation
-        bar = found.score / factor
-        wide = [self._search(pts, centre, 2 * cfg.unguided_window_m, np.pi, min_score=bar) for centre in (guess, last_pose)]
         limit = cfg.unguided_max_contradiction
-        if limit is not None and seen:
-            clear = {}
+        clear: dict[int, bool] = {}
 
-            def fits(r: correlative.CorrelativeResult) -> bool:
-                if id(r) not in clear:
-                    clear[id(r)] = contradiction(r.transform, pts, frame, seen) <= limit
-                return clear[id(r)]
+        def fits(r: correlative.CorrelativeResult) -> bool:
+            if limit is None or not seen:
+                return True
+            if id(r) not in clear:
+                clear[id(r)] = contradiction(r.transform, pts, frame, seen) <= limit
+            return clear[id(r)]
 
-            best = found if fits(found) else None
-            if best is None:  # the guess carried on a turn the robot did not make: the same window around the last pose
-                near = self._search(pts, last_pose, cfg.unguided_window_m, cfg.unguided_window_rad or 0.0)
-                best = near if fits(near) else None
-            level = (best or found).score / factor
-            for r in wide:
-                if r.score > level and fits(r):
+        best = found if fits(found) else None
+        if best is None:  # the guess carried on a turn the robot did not make: the same window around the last pose
+            near = self._search(pts, last_pose, cfg.unguided_window_m, cfg.unguided_window_rad or 0.0)
+            best = near if fits(near) else None
+        level = (best or found).score / cfg.unguided_escalation
+        passed: list[correlative.CorrelativeResult] = []  # widened bests above the level that contradict the map
+        for centre in (guess, last_pose):
+            # Each search need only find what beats the level so far (the branch and bound prunes below it).
+            r = self._search(pts, centre, 2 * cfg.unguided_window_m, np.pi, min_score=level)
+            if r.score > level:
+                if fits(r):
                     best, level = r, r.score
-            if best is not None:
-                self.contradicted += int(any(r.score > level for r in wide))
-                return correlative.CorrelativeResult(best.transform, best.score, found.guess_score)
-        for r in wide:  # no candidate clear of contradiction (or none tested): the best score wins
-            if r.score > bar:
-                found = correlative.CorrelativeResult(r.transform, r.score, found.guess_score)
-                bar = r.score
-        return found
+                else:
+                    passed.append(r)
+        if best is None:  # every candidate contradicts the map: the best score wins, as without the test
+            best = max(passed + [found], key=lambda r: r.score)
+        elif any(r.score > best.score for r in passed):
+            self.contradicted += 1
+        return correlative.CorrelativeResult(best.transform, best.score, found.guess_score)
