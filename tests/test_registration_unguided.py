@@ -7,6 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core import geometry as G
 from core.frame import Frame
@@ -137,3 +139,19 @@ def test_a_scan_only_log_keeps_its_turns_where_a_wide_search_would_turn_a_corrid
     off_deg = np.degrees(np.abs(np.arctan2(e[:, 1, 0], e[:, 0, 0])))
     bad = np.flatnonzero((off_m > 0.3) | (off_deg > 3.0)) + 2
     assert bad.size == 0, list(zip(bad, off_m[bad - 2].round(2), off_deg[bad - 2].round(1)))
+
+
+def _scan_pair(x: float, y: float, theta: float, dx: float, dy: float, dtheta: float):
+    kfs = keyframes(room(), [(x, y, theta), (x + dx, y + dy, theta + dtheta)], seed=7)
+    return [(kf.odom_pose, kf.frame) for kf in kfs]
+
+
+@settings(max_examples=15, deadline=None)
+@given(x=st.floats(1.5, 10.5), y=st.floats(1.5, 6.5), theta=st.floats(-np.pi, np.pi),
+       dx=st.floats(-1.0, 1.0), dy=st.floats(-1.0, 1.0), dtheta=st.floats(-1.0, 1.0))
+def test_contradiction_is_symmetric_and_a_scan_never_contradicts_itself(x, y, theta, dx, dy, dtheta):
+    """Between two scans the test is the same whichever is placed against the other (the larger of the two
+    directions), and a scan at its own pose puts every point exactly at its beam's range (zero)."""
+    (pa, a), (pb, b) = _scan_pair(x, y, theta, dx, dy, dtheta)
+    assert contradiction(pa, a.points, a, [(pb, b)]) == pytest.approx(contradiction(pb, b.points, b, [(pa, a)]))
+    assert contradiction(pa, a.points, a, [(pa, a)]) == 0.0
