@@ -476,7 +476,8 @@ def test_ctrl_c_leaves_complete_run_folders_only(tmp_path):
 def test_example_specs_name_every_log_and_its_reference():
     """examples/kummerle.yaml: the bundled Intel log and the three benchmark logs with relations, each with its
     relations file (Cartographer's figure is known for each); examples/devset.yaml: those logs, the Killian bag
-    and every log of ../shared/data/slam2d_devset, the GMapping-corrected ones scan-only. Needs ../shared/data
+    and every log of ../shared/data/slam2d_devset, the GMapping-corrected ones scan-only, and the three logs with
+    relations once more without their wheels. Needs ../shared/data
     (a missing log fails the spec)."""
     from evaluation.published import recognise_dataset
     from slam.batch.spec import load_spec
@@ -492,8 +493,11 @@ def test_example_specs_name_every_log_and_its_reference():
     assert logs and logs <= {e.path for e in d.logs}
     assert {e.path for e in k.logs if e.name != "intel-bundled"} <= {e.path for e in d.logs}
     for e in d.logs:
-        scan_only = e.path.parent.name == "gmapping-corrected"
+        scan_only = e.path.parent.name == "gmapping-corrected" or e.name.endswith("-scan-only")
         assert e.values == ({"odometry.use_wheel_odometry": False, "odometry.wheel_edges": False} if scan_only else {})
+    # the three logs with relations also run without their wheels, each with its relations
+    blind = {e.name: e.relations or e.found_relations for e in d.logs if e.name.endswith("-scan-only")}
+    assert [recognise_dataset(r) for r in blind.values()] == ["intel", "mit-csail", "fr-clinic"]
     assert {e.name: e.relations for e in d.logs}["killian"].name == "mit-killian.relations"
 
 
