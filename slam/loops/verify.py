@@ -340,7 +340,6 @@ def free_space_violation(points_in_sensor: Array, keyframe: Keyframe, margin: fl
 
 
 def free_space_violation_both(i_T_j: Array, kj: Keyframe, ki: Keyframe) -> float:
-    """The larger of the two directions of :func:`free_space_violation` for the alignment ``i_sensor_T_j_sensor``."""
-    v1 = free_space_violation(G.transform_points(i_T_j, kj.frame.points), ki)
-    v2 = free_space_violation(G.transform_points(G.inverse(i_T_j), ki.frame.points), kj)
-    return max(v1, v2)
+    """The larger of the two directions of :func:`free_space_violation` for the alignment ``i_sensor_T_j_sensor``
+    (:func:`registration.free_space.contradiction` of *kj* placed against *ki* alone)."""
+    return free_space.contradiction(i_T_j, kj.frame.points, kj.frame, [(np.eye(4), ki.frame)])
