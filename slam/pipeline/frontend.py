@@ -36,7 +36,7 @@ from core.frame import Frame
 from registration import correlative
 from registration.alignment import evaluate_alignment
 from registration.config import IcpConfig
-from registration.deskew import deskew_planar
+from registration.deskew import deskew_planar, middle_T_stamp, seen_from
 from registration.sweep_check import SweepCheck, as_read
 from registration.odometry import Odometry, OdometryStep
 from registration.target import IcpTarget
@@ -234,21 +234,29 @@ class FrontEnd:
             model = self.wheel_calibration.calibrated(model)
         return WheelEdge(prev.id, kf.id, wrel, model), consistent
 
-    def _deskewed(self, timed: Frame) -> Frame:
+    def _deskewed(self, timed: Frame) -> tuple[Frame, Frame | None]:
         """*timed* corrected for the motion during its sweep once the sweep check has read its beam times
-        (as listed, reversed, or not to be used) and the odometry has a velocity; as it is before."""
+        (as listed, reversed, or not to be used) and the odometry has a velocity; as it is before. Also the
+        scan with its times as read (None when it was not deskewed)."""
         if self.sweep.verdict in (None, "none"):
-            return timed
+            return timed, None
         twist = self.odometry.planar_twist()
         if twist is None:
-            return timed
-        return deskew_planar(as_read(timed, self.sweep.verdict), twist)
+            return timed, None
+        read = as_read(timed, self.sweep.verdict)
+        return deskew_planar(read, twist), read
 
     def process(self, frame: Frame) -> tuple[Keyframe | None, OdometryEdge | None, OdometryStep]:
-        """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step)."""
+        """Register *frame*; return (new keyframe or None, its odometry edge or None, the odometry step).
+
+        A deskewed scan is registered at the middle of its sweep (:func:`registration.deskew.deskew_planar`);
+        its pose and, for a keyframe, its points are then taken back to its stamp along the increment just
+        registered (the stamp lies between the two registered poses), so that every pose the run reports,
+        keyframes and graph included, is the robot's at its scan's stamp, as a reference's is."""
         timed = timed_frame(frame, self.config.odometry)
+        read = None
         if timed is not None:
-            frame = self._deskewed(timed)
+            frame, read = self._deskewed(timed)
         lumps_before = getattr(self.odometry, "alternative_starts", 0)
         step = self.odometry.update(frame)
         if timed is not None and self.sweep.verdict is None:
@@ -257,6 +265,11 @@ class FrontEnd:
         if self._dof is None:
             self._dof = 3 if frame.is_planar else 6
         pose = step.world_T_base
+        mid_T_stamp = None
+        if read is not None and (twist := self.odometry.planar_twist()) is not None:
+            mid_T_stamp = middle_T_stamp(read, twist)
+            B = frame.base_T_sensor
+            pose = pose @ B @ mid_T_stamp @ G.inverse(B)
         if step.covariance is not None and self._cov_since_kf is not None:
             # Covariance of the base increment equals that of the sensor increment conjugated by base_T_sensor.
             A = G.adjoint(frame.base_T_sensor, planar=self._dof == 3)
@@ -269,6 +282,8 @@ class FrontEnd:
         self.track.wheel_poses.append(frame.odom)
         new_kf = edge = None
         if self.selector.is_keyframe(frame.stamp, pose):
+            if mid_T_stamp is not None:
+                frame = seen_from(frame, G.inverse(mid_T_stamp))
             pts = frame.points
             r = np.linalg.norm(pts, axis=1)
             c = self.config.odometry
