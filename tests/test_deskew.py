@@ -292,3 +292,26 @@ def test_the_beam_time_order_is_read_before_the_run():
     untimed = iter(dataclasses.replace(f, beam_times=None) for f in sim.frames())
     same, head, stats = read_beam_time_order(untimed, config)
     assert same is config and len(head) == 1 and stats == {}
+
+
+def test_a_simulated_rplidars_poses_do_not_lag_half_a_sweep():
+    """A simulated tour with an RPLIDAR A2 (10 Hz, its beams over the whole 0.1 s revolution; the simulator's
+    truth is at the stamps): a pose registered at mid-sweep and written at the stamp would make each step's
+    heading error follow the change of turn rate into it, by half the sweep (0.05 s; the front end before
+    2026-11-28: 0.041 s). Taken back to the stamp, the fitted coefficient stays under a fifth of that."""
+    from evaluation.sim import LASER_PRESETS, load_world
+    from evaluation.sim.simulate import simulate
+    from slam.pipeline.front_process import run_front_end
+
+    sim = simulate(load_world("rooms", seed=2), n_scans=600, spec=LASER_PRESETS["rplidar_a2"], seed=2)
+    summary = run_front_end(sim.frames(), SlamConfig.model_validate({"stage_processes": False}), lambda *kf: None)
+    assert summary.stats["beam_times"] == "reversed"
+    P = np.array(summary.track.odom_poses)
+    heading = np.unwrap(np.arctan2(P[:, 1, 0], P[:, 0, 0]))
+    truth = np.unwrap(np.arctan2(sim.ground_truth[:, 1, 0], sim.ground_truth[:, 0, 0]))
+    rate = np.diff(truth) / np.diff(sim.stamps)
+    step_error = np.diff(heading) - np.diff(truth)
+    rate_change = np.r_[0.0, np.diff(rate)]
+    later = slice(300, None)  # after the sweep check has read the order and the map has settled
+    coefficient = np.polyfit(rate_change[later], step_error[later], 1)[0]
+    assert abs(coefficient) < 0.2 * 0.05

@@ -145,6 +145,32 @@ def test_wheel_calibration_measures_against_the_own_covariance_where_the_margins
     assert cal.scale_rotation == pytest.approx(k_r, rel=0.1)
 
 
+def test_wheel_calibration_leaves_the_trusted_sides_margins_out_of_the_models_share():
+    """Margins that take most, not all, of the disagreement (a registration sharper than its floors say): fitted
+    against the stated covariance the model's scale comes out at 0.4 of the true one (the wheels six times surer
+    than they are), above the lower bound; the calibration takes the fit against the own claim, within 10 % of
+    the truth (1500 samples)."""
+    rng = np.random.default_rng(7)
+    k_t, k_r = 0.25, 0.2
+    s = np.array([k_t, k_t, k_r])
+    cal = NoiseScaleCalibration(2)
+    rows = []
+    for _ in range(1500):
+        own = np.diag([rng.uniform(0.5, 2.0) * 1e-6] * 2 + [rng.uniform(0.5, 2.0) * 1e-8])
+        d_step = rng.uniform(0.2, 0.4)
+        B = np.diag([(0.1 * d_step) ** 2] * 2 + [(0.08 * d_step) ** 2])
+        floor = B * np.outer(s, s) * 0.85  # 85 % of the model's true share
+        d = rng.multivariate_normal(np.zeros(3), own + B * np.outer(s, s))
+        cal.add(d, own + floor, B, own)
+        rows.append((d, own + floor, B))
+    stated = np.array([r[1] for r in rows])
+    dd, BB = np.array([r[0] for r in rows]), np.array([r[2] for r in rows])
+    k_stated = cal._solve(dd[:, :2], stated[:, :2, :2], BB[:, :2, :2])
+    assert 0.05 < k_stated < 0.45 * k_t  # above the bound: its fallback alone would not have caught it
+    assert cal.scale_translation == pytest.approx(k_t, rel=0.1)
+    assert cal.scale_rotation == pytest.approx(k_r, rel=0.1)
+
+
 def _heading_innovations(rng, n, k_r, bias_per_sigma=0.0):
     """*n* heading innovations: each N(μ, A + k_r² B) with A, B random per interval and a mean μ of
     *bias_per_sigma* of the interval's σ at the true scale (a wheel error that repeats)."""
