@@ -15,9 +15,9 @@ the margins than about the model: the moment equation has no positive solution a
 alone exceed the disagreement (a fast laser and good wheels: the wheels 2.2–2.5 × surer than their true
 error, docs/LOOP_CLOSURE.md "The wheels' calibration at a fast laser"), and where they take 94 % of the
 model's share the fit lands just above its bound and the wheels come out 3.6 × surer than they are (a
-simulated RPLIDAR, docs/ODOMETRY.md "A deskewed scan's pose at its stamp"). So each block is also fitted against the trusted side's own claim,
-without the margins, and that fit is taken where the one with the margins reaches less than
-``MARGIN_FIT_RATIO`` of it. On the logs of the development set the two fits agree to 0.85–1.0 (the
+simulated RPLIDAR, docs/ODOMETRY.md "A deskewed scan's pose at its stamp"). So each block is also fitted
+against the trusted side's own claim, without the margins, and that fit is taken where the one with the
+margins reaches less than ``MARGIN_FIT_RATIO`` of it. On the logs of the development set the two fits agree to 0.85–1.0 (the
 registration's own claim is overconfident on real data and the floors are part of its error, so the fit
 with them stays there); on simulated logs, whose registration is as sure as it claims, the translation fit
 with the floors is 0.25 of the other.
