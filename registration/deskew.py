@@ -70,12 +70,10 @@ def deskew_planar(frame: Frame, twist: ArrayLike) -> Frame:
 
 
 def seen_from(frame: Frame, new_T_old: ArrayLike) -> Frame:
-    """*frame*'s beams (taken at one instant, e.g. deskewed) as seen from a sensor frame moved rigidly:
-    *new_T_old* (4×4, planar) takes its points into the new frame; angles and ranges are recomputed, the
-    beams' origin shift left out as in :func:`deskew_planar`."""
+    """*frame*'s beams (taken at one instant, e.g. deskewed; a frame with beam geometry) as seen from a sensor
+    frame moved rigidly: *new_T_old* (4×4, planar) takes its points into the new frame; angles and ranges are
+    recomputed, the beams' origin shift left out as in :func:`deskew_planar`."""
     T = np.asarray(new_T_old, dtype=np.float64)
-    if frame.ranges is None or frame.angles is None:
-        return replace(frame, points=geo.transform_points(T, np.column_stack([frame.points[:, :2], np.zeros(len(frame.points))]))[:, :2])
     n = len(frame.ranges)
     return _moved(frame, np.broadcast_to(T, (n, 4, 4)), np.full(n, float(np.arctan2(T[1, 0], T[0, 0]))))
 
