@@ -41,6 +41,8 @@ class RunSummary(BaseModel):
     peak_memory_by_process_mb: dict[str, float]
     versions: dict[str, str]  # python and the libraries that shape the result
     config: dict[str, Any]  # the whole configuration (the same as config.yaml)
+    pruned_closures: list[dict[str, Any]] = []  # the closures the final solve dropped: keyframes i → j, their
+    # stamps, the violation (m, °) at the solution it dropped them from, the round; [] in summaries written before
     stamps_not_increasing: int = 0  # scans stamped no later than the scan before (a log's rounded or disordered
     # stamps: the outputs keep them as read); 0 in summaries written before it was counted
 

@@ -64,6 +64,24 @@ def test_no_kept_closure_is_violated_after_pruning(rounds):
     assert np.abs(err[:, :2, 3]).max() < 0.05
 
 
+def test_each_pruned_closure_is_listed_with_its_violation():
+    """The final solve lists what it dropped: each injected outlier, with the violation it had at the solution it
+    was dropped from. The true closures hold that solution on the square, so the violation is the outlier's own
+    error: |(1.5, −1.0)| m and 0.3 rad; (0.4, 0.6) m and 0.05 rad (Log of E⁻¹ has the same norms as E's)."""
+    outliers = [(3, 27, np.array([1.5, -1.0, 0.3])), (5, 31, np.array([0.4, 0.6, -0.05]))]
+    be, _ = square_loop_graph(3, outliers)
+    be.finish()
+    assert len(be.pruned) == be.pruned_loops
+    listed = {(p.i, p.j): p for p in be.pruned}
+    for i, j, err in outliers:
+        p = listed[(i, j)]
+        assert p.round >= 1
+        assert p.translation_m == pytest.approx(np.hypot(err[0], err[1]), abs=0.05)
+        assert p.rotation_deg == pytest.approx(np.degrees(abs(err[2])), abs=0.5)
+    kept = {(e.i, e.j) for e in be.graph.edges() if e.kind == "loop"}
+    assert not kept & set(listed)
+
+
 def test_zero_rounds_keeps_every_closure():
     be, _ = square_loop_graph(0, [(3, 27, np.array([1.5, -1.0, 0.3]))])
     n_loops = sum(e.kind == "loop" for e in be.graph.edges())

@@ -88,6 +88,32 @@ def test_slam_run_cli_writes_every_output(tmp_path, sim_log, capsys):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
+def test_summary_lists_the_closures_the_final_solve_pruned(tmp_path, sim_log):
+    """summary.json names every closure the final solve dropped: as many as loop_stats counts, none of them in
+    graph.g2o, each with its keyframes' stamps (node_stamps.txt) and a violation beyond the pruning thresholds.
+    The thresholds are set below the closures' own noise (2 mm / 0.02°) so that this run prunes some."""
+    from slam.graph.g2o import read_g2o
+
+    path, _ = sim_log
+    cfg = tmp_path / "tight.yaml"
+    cfg.write_text("loops:\n  prune_translation_m: 0.002\n  prune_rotation_deg: 0.02\n  prune_rounds: 1\nmapping:\n  enabled: false\n")
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(path), "--out", str(out), "--config", str(cfg), "--quiet"])
+    assert exc.value.code in (0, None)
+    s = json.loads((out / "summary.json").read_text())
+    pruned = s["pruned_closures"]
+    assert len(pruned) == s["loop_stats"]["pruned"] > 0
+    stamps = dict(np.loadtxt(out / "node_stamps.txt", ndmin=2))
+    g = read_g2o(out / "graph.g2o")
+    kept = {(e.i, e.j) for e in g.edges() if e.kind == "loop"}
+    for p in pruned:
+        assert (p["i"], p["j"]) not in kept
+        assert p["stamp_i"] == pytest.approx(stamps[p["i"]]) and p["stamp_j"] == pytest.approx(stamps[p["j"]])
+        assert p["translation_m"] > 0.002 or p["rotation_deg"] > 0.02
+        assert p["round"] == 1
+
+
 def test_failed_run_leaves_no_output(tmp_path, sim_log, capsys):
     """A bad configuration value stops the run with exit 2 before anything is written."""
     path, _ = sim_log

@@ -11,6 +11,7 @@ again, for a few rounds.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +25,18 @@ from slam.loops import LoopClosure
 Array = NDArray[np.float64]
 
 _KERNEL_NAMES = {"huber": "huber", "cauchy": "cauchy", "gm": "geman_mcclure"}
+
+
+@dataclass(frozen=True)
+class PrunedClosure:
+    """A loop closure the final solve dropped: keyframes *i* → *j*, and by how much the solution it was
+    dropped from violated it (the closure's measurement against the solution's relative pose)."""
+
+    i: int
+    j: int
+    translation_m: float
+    rotation_deg: float
+    round: int  # the pruning round (1 = after the first batch solve)
 
 
 class PipelineBackend:
@@ -42,10 +55,15 @@ class PipelineBackend:
         self._n = 0
         self._since_solve = 0
         self.solve_time_s = 0.0
-        self.pruned_loops = 0
+        self.pruned: list[PrunedClosure] = []  # the closures the final solve dropped, in the order it did
         self.smoother_restarts = 0
         self._factorization = config.isam2_factorization  # becomes "qr" after a Cholesky failure
         self._smoother = self._new_smoother() if config.kind == "gtsam" else None
+
+    @property
+    def pruned_loops(self) -> int:
+        """How many loop closures the final solve dropped."""
+        return len(self.pruned)
 
     @property
     def poses(self) -> Array:
@@ -164,15 +182,21 @@ class PipelineBackend:
 
     def _violated_loops(self, poses: Array) -> list[int]:
         """Indices of loop edges the solution violates by more than the pruning thresholds."""
+        return [e for e, _, _ in self._violations(poses)]
+
+    def _violations(self, poses: Array) -> list[tuple[int, float, float]]:
+        """(edge index, translation m, rotation °) of each loop edge the solution *poses* violates by more than
+        the pruning thresholds."""
         c = self.loop_config
         a = self.graph.edge_arrays()
         loops = np.flatnonzero(a.kinds == KINDS.index("loop"))
         if len(loops) == 0:
             return []
         err = G.relative(a.measurements[loops], G.relative(poses[a.ii[loops]], poses[a.jj[loops]]))
-        bad = ((np.linalg.norm(err[:, :3, 3], axis=1) > c.prune_translation_m)
-               | (np.degrees(G.rotation_angles(err[:, :3, :3])) > c.prune_rotation_deg))
-        return [int(e) for e in loops[bad]]
+        dt = np.linalg.norm(err[:, :3, 3], axis=1)
+        dth = np.degrees(G.rotation_angles(err[:, :3, :3]))
+        bad = np.flatnonzero((dt > c.prune_translation_m) | (dth > c.prune_rotation_deg))
+        return [(int(loops[b]), float(dt[b]), float(dth[b])) for b in bad]
 
     def finish(self) -> Array:
         """Final batch solve, then up to ``prune_rounds`` rounds of: drop the closures the solution
@@ -182,12 +206,13 @@ class PipelineBackend:
         P = self.poses
         if self.config.final_batch and self.graph.num_edges > 0:
             P = self._solve_batch(P)
-            for _ in range(self.loop_config.prune_rounds):
-                bad = self._violated_loops(P)
+            for rnd in range(1, self.loop_config.prune_rounds + 1):
+                bad = self._violations(P)
                 if not bad:
                     break
-                self.graph = _without_edges(self.graph, set(bad))
-                self.pruned_loops += len(bad)
+                self.pruned += [PrunedClosure(int(self.graph.edge(e).i), int(self.graph.edge(e).j), dt, dth, rnd)
+                                for e, dt, dth in bad]
+                self.graph = _without_edges(self.graph, {e for e, _, _ in bad})
                 P = self._solve_batch(P)
         self._set_poses(P)
         self.graph.set_poses(P)

@@ -98,7 +98,16 @@ def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wa
         peak_memory_mb=sum(peaks.values()), peak_memory_by_process_mb=peaks,
         versions=_versions(), config=config.model_dump(mode="json"),
         stamps_not_increasing=int(np.count_nonzero(np.diff(np.asarray(result.stamps, dtype=float)) <= 0.0)),
+        pruned_closures=_pruned(result),
     )
+
+
+def _pruned(result: SlamResult) -> list[dict]:
+    """The closures the final solve dropped, with their keyframes' stamps (node ids are keyframe indices)."""
+    kfs = result.keyframes
+    return [{"i": p.i, "j": p.j, "stamp_i": float(kfs[p.i].stamp), "stamp_j": float(kfs[p.j].stamp),
+             "translation_m": p.translation_m, "rotation_deg": p.rotation_deg, "round": p.round}
+            for p in result.backend.pruned]
 
 
 def write_outputs(out_dir: str | Path, result: SlamResult, occ_map, config: SlamConfig,  # type: ignore[no-untyped-def]
