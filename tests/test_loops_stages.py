@@ -89,9 +89,11 @@ def _scene(K: int = 100):
 def test_spatial_candidates_take_the_nearest_and_keep_a_slot_for_an_uncertain_old_pass():
     cfg = LoopConfig(near_candidates=3, uncertain_candidates=1)
     poses, unc = _scene()
-    cands = C.spatial(_keyframes(100), poses, 99, unc, cfg, True, radius_m=2.0, path_m=np.arange(100.0))
+    found = C.spatial(_keyframes(100), poses, 99, unc, cfg, True, radius_m=2.0, path_m=np.arange(100.0))
+    cands = list(found)
     ids = [c.i for c in cands]
     assert all(50 <= i <= 70 for i in ids[:3]) and ids[3] in range(5, 11)
+    assert [c.i for c in found.near] == ids[:3] and [c.i for c in found.uncertain] == ids[3:]
     assert all(abs(a - b) > cfg.local_map_keyframes for a, b in itertools.combinations(ids, 2))  # maps spread
     old = cands[3]
     assert not old.vouched and old.window.xy_m == pytest.approx(cfg.window_sigmas * 1.5)
@@ -100,6 +102,46 @@ def test_spatial_candidates_take_the_nearest_and_keep_a_slot_for_an_uncertain_ol
     # Without the uncertain slot the old pass is crowded out by the recent one.
     assert all(50 <= c.i <= 70 for c in C.spatial(_keyframes(100), poses, 99, unc, cfg.model_copy(
         update={"uncertain_candidates": 0}), True, radius_m=2.0, path_m=np.arange(100.0)))
+
+
+@pytest.mark.parametrize("near_closures, accepting, expect", [
+    (2, True, ["n0", "n1", "u0", "u1"]),  # two nearest accepted: the other two nearest are not verified
+    (None, True, ["n0", "n1", "n2", "n3", "u0", "u1"]),  # no bound: every candidate
+    (2, False, ["n0", "n1", "n2", "n3", "u0", "u1"]),  # nothing accepted: every nearest place is tried
+])
+def test_the_nearest_candidates_are_verified_until_enough_closures_are_accepted(monkeypatch, near_closures, accepting, expect):
+    """The nearest places are verified nearest first until ``near_closures`` closures of the new keyframe are
+    accepted; the most uncertain places are verified whatever the nearest gave (an old pass is what they are for)."""
+    from slam.loops.closer import LoopCloser
+
+    K = 60
+    cfg = LoopConfig(near_closures=near_closures, global_search=False, descriptor=False, overlap_radius_m=5.0)
+    ru = RelativeUncertainty(planar=True)
+    for k in range(1, K):
+        ru.add_edge(k - 1, k, np.eye(3) * 1e-4, 0.5)
+    closer = LoopCloser(cfg, True, ru)
+    kfs = [SimpleNamespace(id=k, base_T_sensor=np.eye(4), points=np.ones((10, 2)), odom_pose=np.eye(4)) for k in range(K)]
+    names = {}
+
+    def cand(i: int, name: str) -> Candidate:
+        names[i] = name
+        return Candidate(i, K - 1, Source.SPATIAL, np.eye(4), Window(1.0, 0.1), None, True)
+
+    found = C.SpatialCandidates([cand(i, f"n{k}") for k, i in enumerate((40, 32, 24, 16))],
+                                [cand(i, f"u{k}") for k, i in enumerate((8, 0))])
+    assert [c.i for c in found] == [40, 32, 24, 16, 8, 0]  # iterated nearest first, then the uncertain
+    monkeypatch.setattr(C, "spatial", lambda *a: found)
+    monkeypatch.setattr(closer.verifier, "reference", lambda *a: None)
+    verified: list[str] = []
+
+    def run(c, keyframes, poses, ref, out, held=None):
+        verified.append(names[c.i])
+        if accepting:
+            out.append(LoopClosure(c.i, c.j, np.eye(4), np.eye(3) * 1e-4, 1.0, 0.01, "spatial"))
+
+    monkeypatch.setattr(closer, "_run", run)
+    closer.detect(kfs, _line(K), K - 1, ru.from_node(K - 1, _line(K)[:, :2, 3]))
+    assert verified == expect
 
 
 def test_places_of_the_same_pass_are_not_candidates():

@@ -10,7 +10,8 @@ floor: a match consistent with such an estimate is a revisit, not an alias.
 Sources (Olson 2009 §2 for spatial gating, Hess et al. 2016 §V for the global search):
 
 * spatial: the ``near_candidates`` nearest places within reach, plus the ``uncertain_candidates``
-  most uncertain ones (an old pass is not crowded out by the recent pass beside it);
+  most uncertain ones (an old pass is not crowded out by the recent pass beside it); the nearest are
+  verified only until ``near_closures`` of them are accepted;
 * descriptor: places whose Scan Context descriptor (Kim & Kim 2018) matches, when the spatial
   ones closed nothing: revisits the estimate has lost;
 * global (2D): places whose window would exceed ``max_window_m`` yet lie within reach: one at a time,
@@ -21,6 +22,9 @@ Sources (Olson 2009 §2 for spatial gating, Hess et al. 2016 §V for the global 
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -109,14 +113,25 @@ def other_pass(path_m: Array, dist_m: Array, j: int, radius_m: float,
     return path_m[j] - before >= dist_m + 2.0 * radius_m
 
 
+@dataclass(frozen=True)
+class SpatialCandidates:
+    """:func:`spatial`'s candidates: the nearest places (nearest first), then the most uncertain ones."""
+
+    near: list[Candidate]
+    uncertain: list[Candidate]
+
+    def __iter__(self) -> Iterator[Candidate]:
+        return iter(self.near + self.uncertain)
+
+
 def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig,
-            planar: bool, radius_m: float, path_m: Array) -> list[Candidate]:
+            planar: bool, radius_m: float, path_m: Array) -> SpatialCandidates:
     """Spatial candidates of the new keyframe *j*: places of other passes (:func:`other_pass`) within
     *radius_m* + ``window_sigmas`` σ whose window stays within ``max_window_m``; the nearest first, then the
     most uncertain."""
     last = j - config.exclude_recent_keyframes
     if last <= 0:
-        return []
+        return SpatialCandidates([], [])
     win_xy, win_th, sd = windows(uncertainty, config, planar)
     dim = 2 if planar else 3
     dist = np.linalg.norm(poses[:last, :dim, 3] - poses[j, :dim, 3], axis=1)
@@ -124,17 +139,18 @@ def spatial(keyframes: list[Keyframe], poses: Array, j: int, uncertainty: NodeUn
              & other_pass(path_m, dist, j, radius_m))
     pool = np.flatnonzero(reach)
     pool = pool[np.argsort(dist[pool], kind="stable")]
-    chosen = _spread(pool, config.near_candidates, [], config.local_map_keyframes)
+    near = _spread(pool, config.near_candidates, [], config.local_map_keyframes)
     uncertain = pool[win_xy[pool] > config.window_floor_m]
     uncertain = uncertain[np.argsort(-sd[uncertain], kind="stable")]
-    chosen += _spread(uncertain, config.uncertain_candidates, chosen, config.local_map_keyframes)
-    out = []
-    for i in chosen:
+    far = _spread(uncertain, config.uncertain_candidates, near, config.local_map_keyframes)
+
+    def candidate(i: int) -> Candidate:
         est = sensor_relative(keyframes, poses, i, j)
-        out.append(Candidate(i, j, Source.SPATIAL, est, Window(float(win_xy[i]), float(win_th[i])),
-                             (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config),
-                             plausible=_plausible(win_xy[i], win_th[i])))
-    return out
+        return Candidate(i, j, Source.SPATIAL, est, Window(float(win_xy[i]), float(win_th[i])),
+                         (est, uncertainty.covariance(i, planar)), _vouched(win_xy[i], win_th[i], config),
+                         plausible=_plausible(win_xy[i], win_th[i]))
+
+    return SpatialCandidates([candidate(i) for i in near], [candidate(i) for i in far])
 
 
 def global_places(poses: Array, j: int, uncertainty: NodeUncertainty, config: LoopConfig, planar: bool,

@@ -114,7 +114,13 @@ class LoopCloser:
         ref = self.verifier.reference(keyframes, poses, j)
         out: list[LoopClosure] = []
         tried: set[int] = set()
-        for cand in C.spatial(keyframes, poses, j, uncertainty, c, self.planar, radius, np.asarray(self._path_m)):
+        found = C.spatial(keyframes, poses, j, uncertainty, c, self.planar, radius, np.asarray(self._path_m))
+        for cand in found.near:
+            if c.near_closures is not None and len(out) >= c.near_closures:
+                break  # enough of this scan at this place; the rest would measure it against the same place again
+            tried.add(cand.i)
+            self._run(cand, keyframes, poses, ref, out)
+        for cand in found.uncertain:
             tried.add(cand.i)
             self._run(cand, keyframes, poses, ref, out)
         for p in self.acceptance.hypotheses():

@@ -29,6 +29,7 @@ class LoopConfig(BaseModel):
     max_window_m: float = Field(10.0, gt=0, description="largest spatial search window (± m), a cost bound; places the estimate cannot place within it are left to the global search")
     near_candidates: int = Field(4, ge=0, description="spatial candidates per keyframe, nearest first (their local maps not overlapping)")
     uncertain_candidates: int = Field(2, ge=0, description="... plus this many of the most uncertain places within reach (an old pass is not crowded out by the recent one)")
+    near_closures: int | None = Field(2, ge=1, description="the nearest candidates are verified, nearest first, until this many closures of the new keyframe are accepted (a cost bound, cf. the sampling ratio of Hess et al. 2016 §V-C: a further one measures the same scan against the same place again); the most uncertain places are always verified; None: every candidate")
     local_map_keyframes: int = Field(3, ge=0, description="a candidate's local map: its scan and those of ±this many keyframes, in its frame")
     local_map_path_m: float | None = Field(0.5, ge=0, description="... widened to cover the search window: keyframes within window + this much path (m) of the candidate; None: the overlap radius")
     max_local_map_keyframes: int = Field(40, ge=1, description="... up to ±this many keyframes (memory and build time)")
