@@ -88,19 +88,25 @@ def test_slam_run_cli_writes_every_output(tmp_path, sim_log, capsys):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
+def _run_with_config(tmp_path, log, name: str, text: str):
+    """`slam run LOG --config NAME` (NAME holding *text*) into ``tmp_path / "run"``: (exit code, that folder)."""
+    cfg = tmp_path / name
+    cfg.write_text(text)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(log), "--out", str(out), "--config", str(cfg), "--quiet"])
+    return exc.value.code, out
+
+
 def test_summary_lists_the_closures_the_final_solve_pruned(tmp_path, sim_log):
     """summary.json names every closure the final solve dropped: as many as loop_stats counts, none of them in
     graph.g2o, each with its keyframes' stamps (node_stamps.txt) and a violation beyond the pruning thresholds.
     The thresholds are set below the closures' own noise (2 mm / 0.02°) so that this run prunes some."""
     from slam.graph.g2o import read_g2o
 
-    path, _ = sim_log
-    cfg = tmp_path / "tight.yaml"
-    cfg.write_text("loops:\n  prune_translation_m: 0.002\n  prune_rotation_deg: 0.02\n  prune_rounds: 1\nmapping:\n  enabled: false\n")
-    out = tmp_path / "run"
-    with pytest.raises(SystemExit) as exc:
-        main(["run", str(path), "--out", str(out), "--config", str(cfg), "--quiet"])
-    assert exc.value.code in (0, None)
+    code, out = _run_with_config(tmp_path, sim_log[0], "tight.yaml", "loops:\n  prune_translation_m: 0.002\n  "
+                                 "prune_rotation_deg: 0.02\n  prune_rounds: 1\nmapping:\n  enabled: false\n")
+    assert code in (0, None)
     s = json.loads((out / "summary.json").read_text())
     pruned = s["pruned_closures"]
     assert len(pruned) == s["loop_stats"]["pruned"] > 0
@@ -116,13 +122,8 @@ def test_summary_lists_the_closures_the_final_solve_pruned(tmp_path, sim_log):
 
 def test_failed_run_leaves_no_output(tmp_path, sim_log, capsys):
     """A bad configuration value stops the run with exit 2 before anything is written."""
-    path, _ = sim_log
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("keyframes:\n  distance_m: -1\n")
-    out = tmp_path / "run"
-    with pytest.raises(SystemExit) as exc:
-        main(["run", str(path), "--out", str(out), "--config", str(bad), "--quiet"])
-    assert exc.value.code == 2
+    code, out = _run_with_config(tmp_path, sim_log[0], "bad.yaml", "keyframes:\n  distance_m: -1\n")
+    assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.yaml" in err[0]
     assert not out.exists()
