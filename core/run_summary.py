@@ -43,6 +43,8 @@ class RunSummary(BaseModel):
     config: dict[str, Any]  # the whole configuration (the same as config.yaml)
     pruned_closures: list[dict[str, Any]] = []  # the closures the final solve dropped: keyframes i → j, their
     # stamps, the violation (m, °) at the solution it dropped them from, the round; [] in summaries written before
+    variance_components: dict[str, Any] | None = None  # the final solve's scales of each edge group's translation and
+    # rotation variance, with the redundancy and χ² they were estimated from; None when it did not run (too few closures)
     stamps_not_increasing: int = 0  # scans stamped no later than the scan before (a log's rounded or disordered
     # stamps: the outputs keep them as read); 0 in summaries written before it was counted
 

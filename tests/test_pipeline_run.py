@@ -120,6 +120,35 @@ def test_summary_lists_the_closures_the_final_solve_pruned(tmp_path, sim_log):
         assert p["round"] == 1
 
 
+def test_variance_components_scale_the_graph_the_run_writes(tmp_path):
+    """With backend.variance_components, summary.json holds the scales of every edge group, each component's
+    share of the χ² matches its share of the redundancy (the estimate's fixed point), and graph.g2o is the graph
+    the final solution came from: plain least squares on it, from its own vertices, stays there. The corridor
+    world driven round five times: enough closures for the estimate to run."""
+    from slam.backends.gtsam_backend import optimize
+    from slam.backends.variance_components import MIN_REDUNDANCY
+    from slam.graph.g2o import read_g2o
+
+    log = tmp_path / "corridor.mcap"
+    write_simulated_log(simulate(load_world("corridor"), n_scans=2400, spec=LASER_PRESETS["hokuyo_utm30"], seed=7), log)
+    code, out = _run_with_config(tmp_path, log, "vce.yaml",
+                                 "backend:\n  variance_components: true\nmapping:\n  enabled: false\n")
+    assert code in (0, None)
+    vc = json.loads((out / "summary.json").read_text())["variance_components"]
+    assert vc is not None and vc["converged"]
+    assert set(vc["groups"]) == {"registration", "wheel", "loop"}
+    assert min(b["redundancy"] for b in vc["groups"]["loop"].values()) >= MIN_REDUNDANCY
+    for blocks in vc["groups"].values():
+        for b in blocks.values():
+            assert b["scale"] > 0
+            if b["redundancy"] >= MIN_REDUNDANCY:  # a component below it keeps the scale it had
+                assert b["chi2"] == pytest.approx(b["redundancy"], rel=0.03)
+    g = read_g2o(out / "graph.g2o")
+    assert all(e.kernel is None for e in g.edges())
+    P = optimize(g, g.poses, method="lm", use_kernels=False).poses
+    assert np.abs(G.relative(g.poses, P)[:, :3, 3]).max() < 1e-4
+
+
 def test_failed_run_leaves_no_output(tmp_path, sim_log, capsys):
     """A bad configuration value stops the run with exit 2 before anything is written."""
     code, out = _run_with_config(tmp_path, sim_log[0], "bad.yaml", "keyframes:\n  distance_m: -1\n")

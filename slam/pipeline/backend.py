@@ -5,7 +5,10 @@ Every keyframe, odometry edge and loop closure is recorded in a :class:`~slam.gr
 optimisation (GTSAM Levenberg–Marquardt with robust kernels on loop edges and on the odometry edges
 of steps no wheel odometry measured, or our chordal solver), then drops loop closures the solution still
 violates by more than Cartographer's criterion (Hess et al. 2016, §VII-B: 20 cm / 1°) and solves
-again, for a few rounds.
+again, for a few rounds. With enough closures left, the registration, wheel and closure edges then take the
+scales of their covariances that the solution's residuals call for (variance components,
+:mod:`slam.backends.variance_components`), and the graph is solved once more under them, as plain least
+squares (the closures that remain are the inliers), and pruned the same way.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from core import geometry as G
 from slam.graph.posegraph import KINDS, PoseGraph, RobustKernel
 
 from .config import BackendConfig, LoopConfig
+from slam.backends.variance_components import VarianceComponents
 from slam.loops import LoopClosure
 
 Array = NDArray[np.float64]
@@ -56,6 +60,8 @@ class PipelineBackend:
         self._since_solve = 0
         self.solve_time_s = 0.0
         self.pruned: list[PrunedClosure] = []  # the closures the final solve dropped, in the order it did
+        self.groups: list[str] = []  # per edge of the graph: "registration", "wheel" or "loop"
+        self.variance_components: VarianceComponents | None = None  # the final solve's, when it ran
         self.smoother_restarts = 0
         self._factorization = config.isam2_factorization  # becomes "qr" after a Cholesky failure
         self._smoother = self._new_smoother() if config.kind == "gtsam" else None
@@ -84,18 +90,21 @@ class PipelineBackend:
         if self._smoother is not None:
             self._smoother.add_node(node_id, initial_pose)
 
-    def add_odometry(self, i: int, j: int, measurement: Array, covariance: Array, alone: bool = False) -> None:
-        """An odometry edge; *alone*: the step's only measurement (no wheel odometry measured it), which
-        then carries the Cauchy kernel of ``lone_odometry_kernel_sigmas``."""
+    def add_odometry(self, i: int, j: int, measurement: Array, covariance: Array, alone: bool = False,
+                     group: str = "registration") -> None:
+        """An odometry edge of *group* (``registration`` or ``wheel``); *alone*: the step's only measurement
+        (no wheel odometry measured it), which then carries the Cauchy kernel of ``lone_odometry_kernel_sigmas``."""
         info = np.linalg.inv(covariance)
         kernel = self.lone_kernel if alone else None
         self.graph.add_edge(i, j, measurement, info, "odometry", kernel)
+        self.groups.append(group)
         if self._smoother is not None:
             self._smoother.add_edge(i, j, measurement, info, kernel)
 
     def add_loop(self, lc: LoopClosure) -> None:
         info = np.linalg.inv(lc.covariance)
         self.graph.add_edge(lc.i, lc.j, lc.measurement, info, "loop", self.kernel)
+        self.groups.append("loop")
         if self._smoother is not None:
             self._smoother.add_edge(lc.i, lc.j, lc.measurement, info, self.kernel)
 
@@ -173,12 +182,12 @@ class PipelineBackend:
 
         return solve_chordal(self.graph, initial).poses
 
-    def _solve_batch(self, initial: Array) -> Array:
+    def _solve_batch(self, initial: Array, kernels: bool = True) -> Array:
         if self.config.kind == "chordal":
             return self._solve_chordal(initial)
         from slam.backends.gtsam_backend import optimize
 
-        return optimize(self.graph, initial, method="lm", use_kernels=True).poses
+        return optimize(self.graph, initial, method="lm", use_kernels=kernels).poses
 
     def _violated_loops(self, poses: Array) -> list[int]:
         """Indices of loop edges the solution violates by more than the pruning thresholds."""
@@ -201,23 +210,54 @@ class PipelineBackend:
     def finish(self) -> Array:
         """Final batch solve, then up to ``prune_rounds`` rounds of: drop the closures the solution
         violates, solve again (a closure pulled into line by an outlier shows only once that outlier
-        is gone). Returns the keyframe poses."""
+        is gone). Then, with ``variance_components``, the edge groups' covariances scaled to the solution's
+        residuals and the graph solved again under them without kernels, pruned the same way. Returns the
+        keyframe poses."""
         t0 = time.perf_counter()
         P = self.poses
         if self.config.final_batch and self.graph.num_edges > 0:
-            P = self._solve_batch(P)
-            for rnd in range(1, self.loop_config.prune_rounds + 1):
-                bad = self._violations(P)
-                if not bad:
-                    break
-                self.pruned += [PrunedClosure(int(self.graph.edge(e).i), int(self.graph.edge(e).j), dt, dth, rnd)
-                                for e, dt, dth in bad]
-                self.graph = _without_edges(self.graph, {e for e, _, _ in bad})
-                P = self._solve_batch(P)
+            P = self._prune(self._solve_batch(P), kernels=True)
+            if self.config.variance_components:
+                P = self._calibrate(P)
         self._set_poses(P)
         self.graph.set_poses(P)
         self.solve_time_s += time.perf_counter() - t0
         return P
+
+    def _prune(self, P: Array, kernels: bool) -> Array:
+        """Up to ``prune_rounds`` rounds of dropping the closures the solution *P* violates and solving again."""
+        first = max((p.round for p in self.pruned), default=0) + 1
+        for rnd in range(first, first + self.loop_config.prune_rounds):
+            bad = self._violations(P)
+            if not bad:
+                break
+            self.pruned += [PrunedClosure(int(self.graph.edge(e).i), int(self.graph.edge(e).j), dt, dth, rnd)
+                            for e, dt, dth in bad]
+            drop = {e for e, _, _ in bad}
+            self.graph = _without_edges(self.graph, drop)
+            self.groups = [g for e, g in enumerate(self.groups) if e not in drop]
+            P = self._solve_batch(P, kernels)
+        return P
+
+    def _calibrate(self, P: Array) -> Array:
+        """The variance components of the edge groups at the solution *P*; when the closures give them
+        enough redundancy, the graph takes the scaled covariances, loses its kernels, and is solved again."""
+        from slam.backends.linsolve import SingularSystemError
+        from slam.backends.variance_components import (MIN_REDUNDANCY, estimate_variance_components,
+                                                       scaled_graph)
+
+        if "loop" not in self.groups:
+            return P
+        try:
+            vc = estimate_variance_components(self.graph, P, self.groups)
+        except (np.linalg.LinAlgError, SingularSystemError):
+            return P  # an information matrix not positive definite, or a graph in pieces: the model stands
+        if min(r for (g, _), r in vc.redundancy.items() if g == "loop") < MIN_REDUNDANCY:
+            return P  # too few closures to say how sure any edge is
+        self.variance_components = vc
+        self.graph = scaled_graph(self.graph, self.groups, vc.scales)
+        self.graph.set_kernel(None, kinds=("odometry", "loop"))
+        return self._prune(self._solve_batch(vc.poses, kernels=False), kernels=False)
 
 
 def _without_edges(graph: PoseGraph, drop: set[int]) -> PoseGraph:

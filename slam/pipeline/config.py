@@ -125,6 +125,7 @@ class BackendConfig(_Model):
     final_batch: bool = True
     lone_odometry_kernel_sigmas: float | None = Field(3.0, gt=0, description="Cauchy kernel, threshold in σ, on a scan-registration edge of a step no wheel odometry measured (a log without it, or wheel_edges off): a match that slid along a corridor, whose covariance still claims centimetres, then yields to the loop closures; None = no kernel. Steps the wheels measured keep no kernel, even where their wheel edge was left out as lumpy (there the registration was preferred)")
     chordal_every_keyframes: int = Field(50, ge=1, description="chordal back end: batch re-solve period for the online estimate")
+    variance_components: bool = Field(False, description="after the final solve and its pruning, scale the translation and rotation variance of each edge group (registration, wheels, closures) so that the solution's residuals match their redundancy (variance-component estimation, Förstner 1979; slam.backends.variance_components) and solve again under those covariances without kernels (the pruned closures are the inliers); a group with fewer than 20 redundant observations keeps its model, and nothing changes while the closures give fewer. The scales go to summary.json (variance_components) and graph.g2o holds the scaled covariances. Off by default: it assumes independent errors, which the registration's jitter and closures on one local map are not, and it makes some runs worse (docs/LOOP_CLOSURE.md, \"How sure the edges are\")")
 
 
 class MappingStageConfig(_Model):

@@ -52,7 +52,7 @@ class OnlineGraph:
             be.add_odometry(edge.i, edge.j, edge.measurement, edge.covariance, alone=not edge.wheels)
             self.uncertainty.add_edge(edge.i, edge.j, edge.covariance, float(np.linalg.norm(edge.measurement[:self.dim, 3])))
             if wheel is not None:
-                be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance)
+                be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance, group="wheel")
                 self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance, float(np.linalg.norm(wheel.measurement[:self.dim, 3])))
         t1 = time.perf_counter()
         poses = be.poses

@@ -99,6 +99,8 @@ def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wa
         versions=_versions(), config=config.model_dump(mode="json"),
         stamps_not_increasing=int(np.count_nonzero(np.diff(np.asarray(result.stamps, dtype=float)) <= 0.0)),
         pruned_closures=_pruned(result),
+        variance_components=(result.backend.variance_components.as_dict()
+                             if result.backend.variance_components is not None else None),
     )
 
 
