@@ -172,6 +172,32 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
     return np.array(rows, dtype=float).reshape(-1, 9)
 
 
+def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],
+                 drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0) -> Array:
+    """:func:`chain_nees` with a run's own loop closures as the reference, where a log has no relations: per closure
+    ``(i, j, i_T_j, covariance)`` between keyframes, the chain's error against it under the chain's covariance
+    plus the closure's (the test is of ``e ~ N(0, Σ_chain + Σ_closure)``). Rows as :func:`chain_nees`'s (the heading
+    error signed as the chain's minus the closure's). A closure was accepted because it agreed with the graph's
+    estimate, which earlier closures had already corrected, so the gate truncates the sample only where the
+    chain is short; for long chains the closures test the chain much as independent relations would
+    (docs/LOOP_CLOSURE.md has both side by side)."""
+    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
+    path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]
+    rows = []
+    for i, j, Z, C in closures:
+        if i == j:
+            continue
+        if i > j:  # the same closure seen from the older keyframe (its covariance carried by the adjoint)
+            i, j, Z, C = j, i, G.inverse(Z), _inverse_covariance(Z, C)
+        T, S = chain.relative(i, j)
+        S = S + C
+        e = G.se2_log(G.relative(Z, T))
+        rows.append((j - i, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
+                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[j] - path[i]),
+                     float(e[2]), float(chain.turn[j] - chain.turn[i])))
+    return np.array(rows, dtype=float).reshape(-1, 9)
+
+
 @dataclass(frozen=True)
 class HeadingFit:
     """Least squares of the signed heading error of chains over at least ``min_path_m`` of odometry on a rate

@@ -131,6 +131,21 @@ def test_nees_with_a_rotation_scale_term_is_never_larger_and_the_heading_fit_doe
         assert b["nees_mean"] <= a["nees_mean"] + 1e-12 and b["sigma_rotation_deg"] >= a["sigma_rotation_deg"] - 1e-12
     assert any(b["nees_mean"] < a["nees_mean"] for a, b in zip(plain["bins"], term["bins"]))
     assert plain["heading_fit"] is not None and plain["heading_fit"] == term["heading_fit"]
+    # Without relations the run's own closures are the reference: every loop edge of graph.g2o is one chain.
+    from slam.graph.g2o import read_g2o
+
+    r = _run("nees", run, "--json", tmp_path / "closures.json")
+    assert r.returncode == 0, r.stderr
+    own = json.loads((tmp_path / "closures.json").read_text())
+    loops = sum(e.kind == "loop" for e in read_g2o(run / "graph.g2o").edges())
+    assert own["reference"] == "closures" and own["closures"] == loops == sum(b["n"] for b in own["bins"]) > 0
+
+
+def test_nees_without_relations_of_a_run_without_closures_is_one_error_line(tmp_path):
+    (tmp_path / "graph.g2o").write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    r = _run("nees", tmp_path)
+    assert r.returncode == 2 and "no loop closure" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
 
 
 def test_nees_of_a_folder_that_is_no_run_is_one_error_line(tmp_path):

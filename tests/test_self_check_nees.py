@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from core import geometry as G
-from evaluation.nees import BIN_EDGES, Chain, bin_by_length, chain_nees, fuse_steps, heading_by_path, heading_fit
+from evaluation.nees import (BIN_EDGES, Chain, bin_by_length, chain_nees, closure_nees, fuse_steps, heading_by_path,
+                             heading_fit)
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, _pair_violation, misplaced, self_check
 
@@ -130,6 +131,28 @@ def test_nees_of_a_chain_with_the_right_covariance_is_one_per_dof_at_every_lengt
     assert [b.lo for b in bins] == [lo for lo in BIN_EDGES[:-1] if lo <= 500][: len(bins)]
     for b in bins:
         # The mean of n samples of χ²(3)/3 has standard deviation √(2/(3n)) (more with overlapping pairs).
+        assert b.nees_mean == pytest.approx(expect, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
+
+
+@pytest.mark.parametrize("scale, expect", [(1.0, 1.0), (4.0, 0.25)])
+def test_nees_against_closures_drawn_with_their_covariance_is_one_per_dof(scale, expect):
+    """Closures as the reference: each drawn from the true relative pose with its own covariance (given in either
+    direction), the chain's covariance plus the closure's explains the difference, NEES/dof 1/scale per bin."""
+    rng = np.random.default_rng(5)
+    K = 600
+    cov = np.diag([0.01**2, 0.005**2, np.radians(0.3) ** 2])
+    truth, edges = _noisy_chain(rng, K, cov)
+    mu, C = fuse_steps(K, [(i, j, T, scale * S) for i, j, T, S in edges])
+    lc = np.diag([0.02**2, 0.02**2, np.radians(0.5) ** 2])
+    closures = []
+    for L in (12, 40, 150, 450):
+        for a in range(0, K - L, max(1, L // 6)):
+            i, j = (a, a + L) if a % 2 else (a + L, a)  # half of them from the newer keyframe's side
+            Z = G.relative(truth[i], truth[j]) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), lc))
+            closures.append((i, j, Z, scale * lc))
+    bins = bin_by_length(closure_nees(mu, C, closures))
+    assert [b.lo for b in bins] == [11, 31, 101, 301]
+    for b in bins:
         assert b.nees_mean == pytest.approx(expect, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
 
 

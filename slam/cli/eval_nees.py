@@ -1,4 +1,5 @@
-"""``slam eval nees``: the consistency of the front end's covariance, chain by chain, against relations."""
+"""``slam eval nees``: the consistency of the front end's covariance, chain by chain, against relations (or,
+where a log has none, against the run's own loop closures)."""
 
 from __future__ import annotations
 
@@ -14,21 +15,21 @@ __all__ = ["nees_cmd"]
 
 def nees_cmd(
     run: Path = typer.Argument(..., help="A slam run folder (graph.g2o, node_stamps.txt, odometry.tum)."),
-    relations: Path = typer.Argument(..., help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009)."),
+    relations: Path | None = typer.Argument(None, help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009); without them, the run's own loop closures (graph.g2o) are the reference."),
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
     heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
     turn_drift: float = typer.Option(0.0, "--turn-drift", parser=real(0.0), help="σ of a scale error of the odometry's rotation (rad per rad of signed turn) added to the chain's covariance (the loop closer models none; docs/LOOP_CLOSURE.md); 0: none."),
     reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
     json_out: Path | None = JSON_OPTION,
 ) -> None:
-    """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations, per chain
-    length (1 = consistent; above, overconfident; below, conservative)."""
+    """Consistency of the front end's covariance: NEES/dof of its keyframe chains against the relations (or the
+    run's own closures), per chain length (1 = consistent; above, overconfident; below, conservative)."""
     check_json(json_out)
     import numpy as np
 
     from core.errors import InputFileError
     from core.trajectory import read_node_stamps
-    from evaluation.nees import bin_by_length, chain_nees, fuse_steps, heading_by_path, heading_fit
+    from evaluation.nees import bin_by_length, chain_nees, closure_nees, fuse_steps, heading_by_path, heading_fit
     from evaluation.relations import read_relations, reference_noise
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
@@ -45,38 +46,49 @@ def nees_cmd(
         mu, cov = fuse_steps(graph.num_nodes, edges)
     except ValueError as err:
         raise InputFileError(run / "graph.g2o", None, str(err)) from None
-    node_t = read_node_stamps(run / "node_stamps.txt", graph.node_ids)
-    scans = read_trajectory(run / "odometry.tum")
-    kf_scan = np.searchsorted(node_t, scans.stamps + stamp_tol, side="right") - 1
-    ia, sa = nearest_indices(node_t, scans.stamps, stamp_tol)
-    if len(ia) != len(node_t):
-        raise InputFileError(run / "node_stamps.txt", None, "a keyframe stamp has no scan in odometry.tum")
-    kf_odom = scans.poses[sa]
-    rel = read_relations(relations)
-    i1, s1 = nearest_indices(rel.t1, scans.stamps, stamp_tol)
-    i2, s2 = nearest_indices(rel.t2, scans.stamps, stamp_tol)
-    both = np.intersect1d(i1, i2)
-    m1, m2 = dict(zip(i1, s1)), dict(zip(i2, s2))
-    keep = [r for r in both if kf_scan[m1[r]] >= 0 and kf_scan[m2[r]] >= 0]
-    if not keep:
-        raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
-    pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
     if heading_drift is None:
         heading_drift = _run_heading_drift(run)
-    noise = reference_noise(rel) if reference else None
-    rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], float(np.radians(heading_drift)),
-                      None if noise is None else noise.covariance(), turn_drift)
+    drift = float(np.radians(heading_drift))
+    noise = None
+    if relations is None:
+        loops = np.flatnonzero(a.kinds == KINDS.index("loop"))
+        if not len(loops):
+            raise InputFileError(run / "graph.g2o", None, "holds no loop closure to test the chains against; give RELATIONS")
+        closures = [(int(a.ii[e]), int(a.jj[e]), a.measurements[e], np.linalg.inv(a.information[e])) for e in loops]
+        rows = closure_nees(mu, cov, closures, drift, turn_drift)
+        typer.echo(f"closures: {len(rows)} (the run's own, with their covariance added to every chain); "
+                   f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
+    else:
+        node_t = read_node_stamps(run / "node_stamps.txt", graph.node_ids)
+        scans = read_trajectory(run / "odometry.tum")
+        kf_scan = np.searchsorted(node_t, scans.stamps + stamp_tol, side="right") - 1
+        ia, sa = nearest_indices(node_t, scans.stamps, stamp_tol)
+        if len(ia) != len(node_t):
+            raise InputFileError(run / "node_stamps.txt", None, "a keyframe stamp has no scan in odometry.tum")
+        kf_odom = scans.poses[sa]
+        rel = read_relations(relations)
+        i1, s1 = nearest_indices(rel.t1, scans.stamps, stamp_tol)
+        i2, s2 = nearest_indices(rel.t2, scans.stamps, stamp_tol)
+        both = np.intersect1d(i1, i2)
+        m1, m2 = dict(zip(i1, s1)), dict(zip(i2, s2))
+        keep = [r for r in both if kf_scan[m1[r]] >= 0 and kf_scan[m2[r]] >= 0]
+        if not keep:
+            raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
+        pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
+        noise = reference_noise(rel) if reference else None
+        rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], drift,
+                          None if noise is None else noise.covariance(), turn_drift)
+        typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
+                   f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
+        if noise is not None:
+            typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
+                       f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
+            if noise.sigma_translation_m < 1e-6:
+                typer.echo("  (they close exactly among themselves: differences of one trajectory, whose own error, if any, "
+                           "is a bias no triangle shows)")
+        elif reference:
+            typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
     bins = bin_by_length(rows)
-    typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
-               f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
-    if noise is not None:
-        typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
-                   f"{np.degrees(noise.sigma_rotation_rad):.3f}° (added to every chain)")
-        if noise.sigma_translation_m < 1e-6:
-            typer.echo("  (they close exactly among themselves: differences of one trajectory, whose own error, if any, "
-                       "is a bias no triangle shows)")
-    elif reference:
-        typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
     typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
     for b in bins:
         span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
@@ -95,7 +107,9 @@ def nees_cmd(
         typer.echo(f"heading error of the {fit.n} chains over {fit.min_path_m:g} m, fitted: {fit.rate_deg_per_m:+.4f} °/m of path "
                    f"{fit.scale_rad_per_rad:+.4f} rad/rad of signed turn (median |turn| {fit.turn_median_deg:.0f}°); residual "
                    f"{fit.rms_deg:.2f}° rms ({fit.rms_rate_only_deg:.2f}° with the rate alone)")
-    save_json(json_out, {"relations": len(rows), "heading_drift_deg_per_m": heading_drift, "turn_drift_rad_per_rad": turn_drift,
+    save_json(json_out, {"reference": "relations" if relations is not None else "closures",
+                          "relations" if relations is not None else "closures": len(rows),
+                          "heading_drift_deg_per_m": heading_drift, "turn_drift_rad_per_rad": turn_drift,
                           "bins": [b.as_dict() for b in bins],
                           "heading_by_path": [h.as_dict() for h in by_path],
                           "heading_fit": None if fit is None else fit.as_dict(),
