@@ -165,11 +165,15 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
         S = AdB @ S @ AdB.T
         if reference_cov is not None:
             S = S + reference_cov
-        e = G.se2_log(G.relative(delta, est))
-        rows.append((kb - ka, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
-                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[kb] - path[ka]),
-                     float(e[2]), float(chain.turn[kb] - chain.turn[ka])))
+        rows.append(_row(chain, path, ka, kb, G.se2_log(G.relative(delta, est)), S))
     return np.array(rows, dtype=float).reshape(-1, 9)
+
+
+def _row(chain: Chain, path: Array, a: int, b: int, e: Array, S: Array) -> tuple[float, ...]:
+    """One row of :func:`chain_nees` for the chain *a* → *b*, its error *e* and covariance *S*."""
+    return (b - a, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
+            float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[b] - path[a]),
+            float(e[2]), float(chain.turn[b] - chain.turn[a]))
 
 
 def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],
@@ -190,11 +194,7 @@ def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Ar
         if i > j:  # the same closure seen from the older keyframe (its covariance carried by the adjoint)
             i, j, Z, C = j, i, G.inverse(Z), _inverse_covariance(Z, C)
         T, S = chain.relative(i, j)
-        S = S + C
-        e = G.se2_log(G.relative(Z, T))
-        rows.append((j - i, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
-                     float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[j] - path[i]),
-                     float(e[2]), float(chain.turn[j] - chain.turn[i])))
+        rows.append(_row(chain, path, i, j, G.se2_log(G.relative(Z, T)), S + C))
     return np.array(rows, dtype=float).reshape(-1, 9)
 
 
