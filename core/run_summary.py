@@ -45,6 +45,8 @@ class RunSummary(BaseModel):
     # stamps, the violation (m, °) at the solution it dropped them from, the round; [] in summaries written before
     variance_components: dict[str, Any] | None = None  # the final solve's scales of each edge group's translation and
     # rotation variance, with the redundancy and χ² they were estimated from; None when it did not run (too few closures)
+    closure_nees: list[dict[str, Any]] | None = None  # the front end's chains against the run's own closures: NEES/dof
+    # per chain length (slam eval nees RUN); None for 3D runs, runs without closures and summaries written before
     stamps_not_increasing: int = 0  # scans stamped no later than the scan before (a log's rounded or disordered
     # stamps: the outputs keep them as read); 0 in summaries written before it was counted
 

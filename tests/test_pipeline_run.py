@@ -120,6 +120,25 @@ def test_summary_lists_the_closures_the_final_solve_pruned(tmp_path, sim_log):
         assert p["round"] == 1
 
 
+def test_summary_tests_the_chains_against_the_runs_own_closures(tmp_path, sim_log):
+    """summary.json's closure_nees is `slam eval nees RUN` on the run's own outputs: the same bins, one chain per
+    kept closure of graph.g2o."""
+    from slam.graph.g2o import read_g2o
+
+    code, out = _run_with_config(tmp_path, sim_log[0], "plain.yaml", "mapping:\n  enabled: false\n")
+    assert code in (0, None)
+    bins = json.loads((out / "summary.json").read_text())["closure_nees"]
+    loops = sum(e.kind == "loop" for e in read_g2o(out / "graph.g2o").edges())
+    assert bins and sum(b["n"] for b in bins) == loops > 0
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "nees", str(out), "--json", str(tmp_path / "nees.json")])
+    assert exc.value.code in (0, None)
+    cli = json.loads((tmp_path / "nees.json").read_text())["bins"]
+    assert [b["lo"] for b in cli] == [b["lo"] for b in bins]
+    for a, b in zip(cli, bins):
+        assert a["n"] == b["n"] and a["nees_mean"] == pytest.approx(b["nees_mean"], rel=1e-9)
+
+
 def test_variance_components_scale_the_graph_the_run_writes(tmp_path):
     """With backend.variance_components, summary.json holds the scales of every edge group, each component's
     share of the χ² matches its share of the redundancy (the estimate's fixed point), and graph.g2o is the graph

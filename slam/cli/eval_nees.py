@@ -29,21 +29,18 @@ def nees_cmd(
 
     from core.errors import InputFileError
     from core.trajectory import read_node_stamps
-    from evaluation.nees import bin_by_length, chain_nees, closure_nees, fuse_steps, heading_by_path, heading_fit
+    from evaluation.nees import bin_by_length, chain_nees, closure_nees, heading_by_path, heading_fit
     from evaluation.relations import read_relations, reference_noise
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
-    from slam.graph.posegraph import KINDS
+    from slam.pipeline.consistency import graph_chain, graph_closures
     from slam.trajectory_io import read_trajectory
 
     graph = read_graph(run / "graph.g2o")
     if graph.dim != 2:
         raise InputFileError(run / "graph.g2o", None, "is not a planar graph; the NEES table is for 2D runs")
-    a = graph.edge_arrays()
-    odo = np.flatnonzero(a.kinds == KINDS.index("odometry"))
-    edges = [(int(a.ii[e]), int(a.jj[e]), a.measurements[e], np.linalg.inv(a.information[e])) for e in odo]
     try:
-        mu, cov = fuse_steps(graph.num_nodes, edges)
+        mu, cov = graph_chain(graph)
     except ValueError as err:
         raise InputFileError(run / "graph.g2o", None, str(err)) from None
     if heading_drift is None:
@@ -51,10 +48,9 @@ def nees_cmd(
     drift = float(np.radians(heading_drift))
     noise = None
     if relations is None:
-        loops = np.flatnonzero(a.kinds == KINDS.index("loop"))
-        if not len(loops):
+        closures = graph_closures(graph)
+        if not closures:
             raise InputFileError(run / "graph.g2o", None, "holds no loop closure to test the chains against; give RELATIONS")
-        closures = [(int(a.ii[e]), int(a.jj[e]), a.measurements[e], np.linalg.inv(a.information[e])) for e in loops]
         rows = closure_nees(mu, cov, closures, drift, turn_drift)
         typer.echo(f"closures: {len(rows)} (the run's own, with their covariance added to every chain); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")

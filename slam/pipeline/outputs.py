@@ -21,6 +21,7 @@ from core.atomic import atomic_directory
 from core.run_summary import RunSummary
 
 from .config import SlamConfig
+from .consistency import closure_consistency
 from .run import SlamResult
 
 #: Files every run folder holds: an existing folder with them is an earlier run, which a new run replaces.
@@ -101,6 +102,7 @@ def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wa
         pruned_closures=_pruned(result),
         variance_components=(result.backend.variance_components.as_dict()
                              if result.backend.variance_components is not None else None),
+        closure_nees=closure_consistency(result.backend.graph, float(np.radians(config.loops.heading_drift_deg_per_m))),
     )
 
 
