@@ -101,12 +101,20 @@ class Chain:
     loop closer's heading rate (:mod:`slam.loops.uncertainty`), ``σ_b² u uᵀ``, and a scale error of the rotation
     (measured here; the closer does not model it), ``σ_k² w wᵀ``: a heading error ``b ℓ_m`` (``k Δθ_m``) at step *m*
     enters as ``Ad(C_m) (0, 0, ℓ_m)`` (``(0, 0, Δθ_m)``), so u and w are prefix sums, exact to first order.
-    ``turn[k]`` is the summed signed turn Σ_{m ≤ k} Δθ_m."""
+    ``turn[k]`` is the summed signed turn Σ_{m ≤ k} Δθ_m. *walk* scales the steps' covariance before it compounds;
+    *jitter* × the median step covariance is added at both ends of every chain (a per-keyframe error that the next
+    step undoes: a step's error is then ``j_k − j_{k−1} + w_k``; with walk 1 and jitter 0, independent steps)."""
 
-    def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0) -> None:
+    def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0,
+                 walk: float = 1.0, jitter: float = 0.0) -> None:
         K = len(mu)
         self.drift = float(drift_rad_per_m)
         self.drift_turn = float(drift_per_turn)
+        # The registration's jitter (docs/LOOP_CLOSURE.md, "The registration's error is jitter"): each keyframe's
+        # own error, undone by the next step, at both ends of a chain instead of compounded along it; the rest of
+        # each step's covariance (the walk) compounds.
+        self.jitter = float(jitter) * (np.median(cov[1:], axis=0) if K > 1 else np.zeros((3, 3)))
+        cov = float(walk) * np.asarray(cov, dtype=float)
         self.C = np.zeros((K, 4, 4))
         self.C[0] = np.eye(4)
         self.S = np.zeros((K, 3, 3))
@@ -130,12 +138,17 @@ class Chain:
         if self.drift_turn > 0.0:
             w = Ainv @ (self.W[b] - self.W[a])
             S = S + self.drift_turn**2 * np.outer(w, w)
-        return G.relative(self.C[a], self.C[b]), S
+        T = G.relative(self.C[a], self.C[b])
+        if np.any(self.jitter):
+            Ad = G.adjoint(G.inverse(T), planar=True)  # a's own error seen from b
+            S = S + Ad @ self.jitter @ Ad.T + self.jitter
+        return T, S
 
 
 def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
                keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0,
-               reference_cov: Array | None = None, drift_per_turn: float = 0.0) -> Array:
+               reference_cov: Array | None = None, drift_per_turn: float = 0.0, walk: float = 1.0,
+               jitter: float = 0.0) -> Array:
     """Per relation ``(scan a, scan b)`` with true ``a_T_b`` *truth*: rows (chain length in keyframes, NEES/dof,
     translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad, odometry
     path length between the keyframes m, signed heading error rad (estimate minus truth), summed signed odometry
@@ -144,11 +157,11 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
     *mu*, *cov*: :func:`fuse_steps`; *keyframe_of_scan*: the last keyframe at or before each scan;
     *scan_odometry* ``(N, 4, 4)`` and *keyframe_odometry* ``(K, 4, 4)``: the front end's odometry poses,
     which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate, *drift_per_turn*: σ_k of the
-    rotation's scale error (rad per rad; 0: none);
+    rotation's scale error (rad per rad; 0: none); *walk*, *jitter*: :class:`Chain`'s;
     *reference_cov* ``(3, 3)``: the relations' own error (:func:`evaluation.relations.reference_noise`), added to
     the chain's (the test is then of ``e ~ N(0, Σ_chain + Σ_ref)``). Relations within one keyframe interval
     are left out."""
-    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
+    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn, walk, jitter)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]  # odometry path length at each keyframe
     rows = []
     for (sa, sb), delta in zip(pairs, truth):
@@ -177,7 +190,8 @@ def _row(chain: Chain, path: Array, a: int, b: int, e: Array, S: Array) -> tuple
 
 
 def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],
-                 drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0) -> Array:
+                 drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0, walk: float = 1.0,
+                 jitter: float = 0.0) -> Array:
     """:func:`chain_nees` with a run's own loop closures as the reference, where a log has no relations: per closure
     ``(i, j, i_T_j, covariance)`` between keyframes, the chain's error against it under the chain's covariance
     plus the closure's (the test is of ``e ~ N(0, Σ_chain + Σ_closure)``). Rows as :func:`chain_nees`'s (the heading
@@ -185,7 +199,7 @@ def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Ar
     estimate, which earlier closures had already corrected, so the gate truncates the sample only where the
     chain is short; for long chains the closures test the chain much as independent relations would
     (docs/LOOP_CLOSURE.md has both side by side)."""
-    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
+    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn, walk, jitter)
     path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]
     rows = []
     for i, j, Z, C in closures:

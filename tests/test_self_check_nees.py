@@ -156,6 +156,38 @@ def test_nees_against_closures_drawn_with_their_covariance_is_one_per_dof(scale,
         assert b.nees_mean == pytest.approx(expect, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
 
 
+def test_a_chain_of_jitter_is_consistent_only_with_the_jitter_at_its_ends():
+    """Steps measured between scan-map poses that each carry their own error (e_k = j_k − j_(k−1) + w_k, the
+    registration's jitter, docs/LOOP_CLOSURE.md): the model that compounds each step's whole covariance
+    (2J + W) is conservative over long chains; the jitter at both ends plus the compounded walk is consistent
+    at every length."""
+    rng = np.random.default_rng(17)
+    K = 800
+    J = np.diag([0.01**2, 0.01**2, np.radians(0.2) ** 2])
+    W = J / 20.0
+    steps = [G.xytheta_to_matrix(0.25, 0.0, t) for t in rng.normal(0, 0.1, K)]
+    truth = [np.eye(4)]
+    for s in steps[1:]:
+        truth.append(truth[-1] @ s)
+    truth = np.array(truth)
+    scan = truth @ G.se2_exp(rng.multivariate_normal(np.zeros(3), J, K))  # each keyframe's scan-map pose
+    edges = [(k - 1, k, G.relative(scan[k - 1], scan[k]) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), W)),
+              2 * J + W) for k in range(1, K)]  # each step's covariance as a front end would state it
+    mu, C = fuse_steps(K, edges)
+    pairs = np.array([(a, a + L) for L in (1, 2, 4, 8, 20, 60, 200, 500) for a in range(0, K - L, max(1, L // 4))])
+    delta = G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]])
+    share = np.trace(J) / np.trace(2 * J + W)  # J and W are proportional here, so the shares are exact
+
+    def bins(**model):
+        return bin_by_length(chain_nees(mu, C, np.arange(K), truth, truth, pairs, delta, **model))
+
+    independent = bins()
+    assert independent[0].nees_mean == pytest.approx(1.0, rel=0.3)  # one step: its whole covariance is right
+    assert independent[-1].nees_mean < 0.2  # 500 steps: the jitter does not add up
+    for b in bins(walk=1 - 2 * share, jitter=share):
+        assert b.nees_mean == pytest.approx(1.0, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
+
+
 def test_fused_parallel_edges_add_their_information_and_the_chain_compounds_them():
     rng = np.random.default_rng(3)
     T = G.xytheta_to_matrix(0.3, 0.1, 0.2)

@@ -19,6 +19,8 @@ def nees_cmd(
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
     heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
     turn_drift: float = typer.Option(0.0, "--turn-drift", parser=real(0.0), help="σ of a scale error of the odometry's rotation (rad per rad of signed turn) added to the chain's covariance (the loop closer models none; docs/LOOP_CLOSURE.md); 0: none."),
+    walk: float = typer.Option(1.0, "--walk", parser=real(0.0), help="Scale of the steps' covariance before it compounds along a chain (1: as the run modelled it)."),
+    jitter: float = typer.Option(0.0, "--jitter", parser=real(0.0), help="A per-keyframe error the next step undoes: this many times the median step covariance added at both ends of every chain instead of compounded (docs/LOOP_CLOSURE.md, 'The registration's error is jitter'); 0: none."),
     reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
     json_out: Path | None = JSON_OPTION,
 ) -> None:
@@ -51,7 +53,7 @@ def nees_cmd(
         closures = graph_closures(graph)
         if not closures:
             raise InputFileError(run / "graph.g2o", None, "holds no loop closure to test the chains against; give RELATIONS")
-        rows = closure_nees(mu, cov, closures, drift, turn_drift)
+        rows = closure_nees(mu, cov, closures, drift, turn_drift, walk, jitter)
         typer.echo(f"closures: {len(rows)} (the run's own, with their covariance added to every chain); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
     else:
@@ -73,7 +75,7 @@ def nees_cmd(
         pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
         noise = reference_noise(rel) if reference else None
         rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], drift,
-                          None if noise is None else noise.covariance(), turn_drift)
+                          None if noise is None else noise.covariance(), turn_drift, walk, jitter)
         typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
         if noise is not None:
@@ -106,6 +108,7 @@ def nees_cmd(
     save_json(json_out, {"reference": "relations" if relations is not None else "closures",
                           "relations" if relations is not None else "closures": len(rows),
                           "heading_drift_deg_per_m": heading_drift, "turn_drift_rad_per_rad": turn_drift,
+                          "walk": walk, "jitter": jitter,
                           "bins": [b.as_dict() for b in bins],
                           "heading_by_path": [h.as_dict() for h in by_path],
                           "heading_fit": None if fit is None else fit.as_dict(),
