@@ -26,6 +26,7 @@ Planar (SE(2)) chains only; poses are 4×4, covariances in the tangent order ``(
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,6 +211,35 @@ def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Ar
         T, S = chain.relative(i, j)
         rows.append(_row(chain, path, i, j, G.se2_log(G.relative(Z, T)), S + C))
     return np.array(rows, dtype=float).reshape(-1, 9)
+
+
+#: Chains at least this long (keyframes) set the walk of :func:`fit_walk`: there the compounded walk, not the
+#: jitter at the ends, makes the covariance.
+LONG_CHAIN_KEYFRAMES = 101
+
+
+def fit_walk(rows_for: Callable[[float], Array], min_chains: int = 30, bounds: tuple[float, float] = (1e-3, 1e2),
+             steps: int = 24) -> tuple[float, int] | None:
+    """The walk (the steps' covariance scale, :class:`Chain`) at which the chains of at least
+    :data:`LONG_CHAIN_KEYFRAMES` keyframes average NEES/dof 1, by bisection on its logarithm (their mean NEES
+    falls as the walk grows); *rows_for(walk)* gives :func:`chain_nees` or :func:`closure_nees` rows. Returns
+    (walk, chains) or None with fewer than *min_chains* such chains; a walk at a bound means the bound was not enough."""
+    def long_mean(w: float) -> tuple[float, int]:
+        r = rows_for(w)
+        m = r[:, 0] >= LONG_CHAIN_KEYFRAMES
+        return (float(r[m, 1].mean()) if m.any() else float("nan")), int(m.sum())
+
+    lo, hi = np.log(bounds[0]), np.log(bounds[1])
+    _, n = long_mean(1.0)
+    if n < min_chains:
+        return None
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if long_mean(float(np.exp(mid)))[0] > 1.0:
+            lo = mid  # still overconfident: more walk
+        else:
+            hi = mid
+    return float(np.exp(0.5 * (lo + hi))), n
 
 
 @dataclass(frozen=True)

@@ -139,6 +139,13 @@ def test_nees_with_a_rotation_scale_term_is_never_larger_and_the_heading_fit_doe
     own = json.loads((tmp_path / "closures.json").read_text())
     loops = sum(e.kind == "loop" for e in read_g2o(run / "graph.g2o").edges())
     assert own["reference"] == "closures" and own["closures"] == loops == sum(b["n"] for b in own["bins"]) > 0
+    # The walk fitted to them makes the chains of 101 keyframes or more average NEES/dof 1.
+    r = _run("nees", run, "--jitter", 1, "--fit-walk", "--json", tmp_path / "fitted.json")
+    assert r.returncode == 0, r.stderr
+    fitted = json.loads((tmp_path / "fitted.json").read_text())
+    assert fitted["walk_fitted"] and 1e-3 < fitted["walk"] < 1e2
+    long = [b for b in fitted["bins"] if b["lo"] >= 101]
+    assert sum(b["n"] * b["nees_mean"] for b in long) / sum(b["n"] for b in long) == pytest.approx(1.0, rel=1e-3)
 
 
 def test_nees_without_relations_of_a_run_without_closures_is_one_error_line(tmp_path):

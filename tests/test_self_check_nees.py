@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from core import geometry as G
-from evaluation.nees import (BIN_EDGES, Chain, bin_by_length, chain_nees, closure_nees, fuse_steps, heading_by_path,
-                             heading_fit)
+from evaluation.nees import (BIN_EDGES, Chain, bin_by_length, chain_nees, closure_nees, fit_walk, fuse_steps,
+                             heading_by_path, heading_fit)
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, _pair_violation, misplaced, self_check
 
@@ -186,6 +186,12 @@ def test_a_chain_of_jitter_is_consistent_only_with_the_jitter_at_its_ends():
     assert independent[-1].nees_mean < 0.2  # 500 steps: the jitter does not add up
     for b in bins(walk=1 - 2 * share, jitter=share):
         assert b.nees_mean == pytest.approx(1.0, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
+    # With the jitter known, the walk fitted to the long chains is the one they were drawn with.
+    long = np.array([(a, a + L) for L in (120, 200, 300, 500) for a in range(0, K - L, 10)])
+    truth_long = G.relative(truth[long[:, 0]], truth[long[:, 1]])
+    fitted = fit_walk(lambda w: chain_nees(mu, C, np.arange(K), truth, truth, long, truth_long, walk=w, jitter=share))
+    assert fitted is not None and fitted[1] >= 30
+    assert fitted[0] == pytest.approx(1 - 2 * share, rel=0.3)
 
 
 def test_fused_parallel_edges_add_their_information_and_the_chain_compounds_them():

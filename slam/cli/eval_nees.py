@@ -21,6 +21,7 @@ def nees_cmd(
     turn_drift: float = typer.Option(0.0, "--turn-drift", parser=real(0.0), help="σ of a scale error of the odometry's rotation (rad per rad of signed turn) added to the chain's covariance (the loop closer models none; docs/LOOP_CLOSURE.md); 0: none."),
     walk: float = typer.Option(1.0, "--walk", parser=real(0.0), help="Scale of the steps' covariance before it compounds along a chain (1: as the run modelled it)."),
     jitter: float = typer.Option(0.0, "--jitter", parser=real(0.0), help="A per-keyframe error the next step undoes: this many times the median step covariance added at both ends of every chain instead of compounded (docs/LOOP_CLOSURE.md, 'The registration's error is jitter'); 0: none."),
+    fit_the_walk: bool = typer.Option(False, "--fit-walk", help="Fit the walk (overriding --walk) so that the chains of at least 101 keyframes average NEES/dof 1, with the --jitter given: the chain model calibrated to the reference (the closures, without RELATIONS)."),
     reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
     json_out: Path | None = JSON_OPTION,
 ) -> None:
@@ -31,7 +32,7 @@ def nees_cmd(
 
     from core.errors import InputFileError
     from core.trajectory import read_node_stamps
-    from evaluation.nees import bin_by_length, chain_nees, closure_nees, heading_by_path, heading_fit
+    from evaluation.nees import LONG_CHAIN_KEYFRAMES, bin_by_length, chain_nees, closure_nees, heading_by_path, heading_fit
     from evaluation.relations import read_relations, reference_noise
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
@@ -53,7 +54,11 @@ def nees_cmd(
         closures = graph_closures(graph)
         if not closures:
             raise InputFileError(run / "graph.g2o", None, "holds no loop closure to test the chains against; give RELATIONS")
-        rows = closure_nees(mu, cov, closures, drift, turn_drift, walk, jitter)
+        def rows_for(w: float):  # type: ignore[no-untyped-def]
+            return closure_nees(mu, cov, closures, drift, turn_drift, w, jitter)
+
+        walk = _fitted(rows_for, run / "graph.g2o") if fit_the_walk else walk
+        rows = rows_for(walk)
         typer.echo(f"closures: {len(rows)} (the run's own, with their covariance added to every chain); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
     else:
@@ -74,8 +79,12 @@ def nees_cmd(
             raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
         pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
         noise = reference_noise(rel) if reference else None
-        rows = chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], drift,
-                          None if noise is None else noise.covariance(), turn_drift, walk, jitter)
+        def rows_for(w: float):  # type: ignore[no-untyped-def]
+            return chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], drift,
+                              None if noise is None else noise.covariance(), turn_drift, w, jitter)
+
+        walk = _fitted(rows_for, relations) if fit_the_walk else walk
+        rows = rows_for(walk)
         typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
         if noise is not None:
@@ -87,6 +96,8 @@ def nees_cmd(
         elif reference:
             typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
     bins = bin_by_length(rows)
+    if fit_the_walk:
+        typer.echo(f"walk fitted: {walk:.4g} (jitter {jitter:g}; chains of at least {LONG_CHAIN_KEYFRAMES} keyframes average 1)")
     typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
     for b in bins:
         span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
@@ -108,13 +119,24 @@ def nees_cmd(
     save_json(json_out, {"reference": "relations" if relations is not None else "closures",
                           "relations" if relations is not None else "closures": len(rows),
                           "heading_drift_deg_per_m": heading_drift, "turn_drift_rad_per_rad": turn_drift,
-                          "walk": walk, "jitter": jitter,
+                          "walk": walk, "walk_fitted": fit_the_walk, "jitter": jitter,
                           "bins": [b.as_dict() for b in bins],
                           "heading_by_path": [h.as_dict() for h in by_path],
                           "heading_fit": None if fit is None else fit.as_dict(),
                           "reference_noise": None if noise is None else {
                               "sigma_translation_m": noise.sigma_translation_m,
                               "sigma_rotation_deg": float(np.degrees(noise.sigma_rotation_rad)), "triangles": noise.triangles}})
+
+
+def _fitted(rows_for, source: Path) -> float:  # type: ignore[no-untyped-def]
+    """:func:`evaluation.nees.fit_walk` of *rows_for*, or a one-line error naming *source* (too few long chains)."""
+    from core.errors import InputFileError
+    from evaluation.nees import LONG_CHAIN_KEYFRAMES, fit_walk
+
+    fitted = fit_walk(rows_for)
+    if fitted is None:
+        raise InputFileError(source, None, f"fewer than 30 chains of {LONG_CHAIN_KEYFRAMES} keyframes or more to fit the walk to")
+    return fitted[0]
 
 
 def _run_heading_drift(run: Path) -> float:
