@@ -47,6 +47,9 @@ class RunSummary(BaseModel):
     # rotation variance, with the redundancy and χ² they were estimated from; None when it did not run (too few closures)
     closure_nees: list[dict[str, Any]] | None = None  # the front end's chains against the run's own closures: NEES/dof
     # per chain length (slam eval nees RUN); None for 3D runs, runs without closures and summaries written before
+    chain_model: dict[str, Any] | None = None  # the chains' covariance calibrated by the run's closures: the steps'
+    # walk and jitter shares, the long chains they were fitted on, and closure_nees under them (evaluation.chain_model);
+    # None where closure_nees is, or with too few long chains
     stamps_not_increasing: int = 0  # scans stamped no later than the scan before (a log's rounded or disordered
     # stamps: the outputs keep them as read); 0 in summaries written before it was counted
 

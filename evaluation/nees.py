@@ -18,6 +18,11 @@ the rotation k ~ N(0, σ_k²) (every turn Δθ_k off by k·Δθ_k; Borenstein & 
 adds ``σ_k² w wᵀ`` the same way, with Δθ_k for ℓ_k. :func:`heading_fit` measures both on the relations: the
 heading error of long chains regressed on their path length and their summed signed turn.
 
+A scan-to-map front end's steps are not independent: its error is largely jitter, which the next step undoes.
+The chains' covariance is therefore split into a compounded walk and a jitter at both ends, with the shares the
+run's own long closures calibrate (:mod:`evaluation.chain_model`); :func:`chain_sample` and :func:`closure_sample`
+keep the parts apart, so any model's NEES is one product away.
+
 Relations between scans that are not keyframes are carried to the keyframes before them with the
 front end's own per-scan odometry (its error over those few scans is not in the chain's covariance).
 
@@ -26,13 +31,14 @@ Planar (SE(2)) chains only; poses are 4×4, covariances in the tangent order ``(
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from core import geometry as G
+
+from .chain_model import Chain, ChainSample
 
 Array = NDArray[np.float64]
 
@@ -94,76 +100,21 @@ def _inverse_covariance(T: Array, cov: Array) -> Array:
     return A @ cov @ A.T
 
 
-class Chain:
-    """Prefix products and compounded covariances of a keyframe chain, for any pair in O(1).
-
-    With right perturbations, ``T_ab = Π_{k=a+1..b} μ_k Exp(ξ_k)`` gives ``Σ_ab = Ad(C_b)⁻¹ (S_b − S_a) Ad(C_b)⁻ᵀ``
-    where ``C_k = μ_1 ⋯ μ_k`` and ``S_k = Σ_{m ≤ k} Ad(C_m) Σ_m Ad(C_m)ᵀ``. Two random constants may be added: the
-    loop closer's heading rate (:mod:`slam.loops.uncertainty`), ``σ_b² u uᵀ``, and a scale error of the rotation
-    (measured here; the closer does not model it), ``σ_k² w wᵀ``: a heading error ``b ℓ_m`` (``k Δθ_m``) at step *m*
-    enters as ``Ad(C_m) (0, 0, ℓ_m)`` (``(0, 0, Δθ_m)``), so u and w are prefix sums, exact to first order.
-    ``turn[k]`` is the summed signed turn Σ_{m ≤ k} Δθ_m. *walk* scales the steps' covariance before it compounds;
-    *jitter* × the median step covariance is added at both ends of every chain (a per-keyframe error that the next
-    step undoes: a step's error is then ``j_k − j_{k−1} + w_k``; with walk 1 and jitter 0, independent steps)."""
-
-    def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0,
-                 walk: float = 1.0, jitter: float = 0.0) -> None:
-        K = len(mu)
-        self.drift = float(drift_rad_per_m)
-        self.drift_turn = float(drift_per_turn)
-        # The registration's jitter (docs/LOOP_CLOSURE.md, "The registration's error is jitter"): each keyframe's
-        # own error, undone by the next step, at both ends of a chain instead of compounded along it; the rest of
-        # each step's covariance (the walk) compounds.
-        self.jitter = float(jitter) * (np.median(cov[1:], axis=0) if K > 1 else np.zeros((3, 3)))
-        cov = float(walk) * np.asarray(cov, dtype=float)
-        self.C = np.zeros((K, 4, 4))
-        self.C[0] = np.eye(4)
-        self.S = np.zeros((K, 3, 3))
-        self.J = np.zeros((K, 3))  # J_k = Σ_{m ≤ k} Ad(C_m) (0, 0, ℓ_m): the heading rate's prefix
-        self.W = np.zeros((K, 3))  # W_k = Σ_{m ≤ k} Ad(C_m) (0, 0, Δθ_m): the rotation scale error's prefix
-        self.turn = np.r_[0.0, np.cumsum(np.arctan2(mu[1:, 1, 0], mu[1:, 0, 0]))] if K else np.zeros(0)
-        for k in range(1, K):
-            self.C[k] = self.C[k - 1] @ mu[k]
-            A = G.adjoint(self.C[k], planar=True)
-            self.S[k] = self.S[k - 1] + A @ cov[k] @ A.T
-            self.J[k] = self.J[k - 1] + A[:, 2] * float(np.linalg.norm(mu[k][:2, 3]))
-            self.W[k] = self.W[k - 1] + A[:, 2] * (self.turn[k] - self.turn[k - 1])
-
-    def relative(self, a: int, b: int) -> tuple[Array, Array]:
-        """``a_T_b`` along the chain and its covariance (a ≤ b)."""
-        Ainv = np.linalg.inv(G.adjoint(self.C[b], planar=True))
-        S = Ainv @ (self.S[b] - self.S[a]) @ Ainv.T
-        if self.drift > 0.0:
-            u = Ainv @ (self.J[b] - self.J[a])
-            S = S + self.drift**2 * np.outer(u, u)
-        if self.drift_turn > 0.0:
-            w = Ainv @ (self.W[b] - self.W[a])
-            S = S + self.drift_turn**2 * np.outer(w, w)
-        T = G.relative(self.C[a], self.C[b])
-        if np.any(self.jitter):
-            Ad = G.adjoint(G.inverse(T), planar=True)  # a's own error seen from b
-            S = S + Ad @ self.jitter @ Ad.T + self.jitter
-        return T, S
-
-
-def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
-               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0,
-               reference_cov: Array | None = None, drift_per_turn: float = 0.0, walk: float = 1.0,
-               jitter: float = 0.0) -> Array:
-    """Per relation ``(scan a, scan b)`` with true ``a_T_b`` *truth*: rows (chain length in keyframes, NEES/dof,
-    translation error m, rotation error rad, predicted translation σ m, predicted rotation σ rad, odometry
-    path length between the keyframes m, signed heading error rad (estimate minus truth), summed signed odometry
-    turn between the keyframes rad).
+def chain_sample(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
+                 keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0,
+                 reference_cov: Array | None = None, drift_per_turn: float = 0.0) -> ChainSample:
+    """The chains of relations ``(scan a, scan b)`` with true ``a_T_b`` *truth*, as a :class:`ChainSample` (the error
+    signed as the estimate's minus the truth's).
 
     *mu*, *cov*: :func:`fuse_steps`; *keyframe_of_scan*: the last keyframe at or before each scan;
     *scan_odometry* ``(N, 4, 4)`` and *keyframe_odometry* ``(K, 4, 4)``: the front end's odometry poses,
     which carry each scan to its keyframe; *drift_rad_per_m*: σ_b of the heading rate, *drift_per_turn*: σ_k of the
-    rotation's scale error (rad per rad; 0: none); *walk*, *jitter*: :class:`Chain`'s;
+    rotation's scale error (rad per rad; 0: none), both :class:`~evaluation.chain_model.Chain`'s;
     *reference_cov* ``(3, 3)``: the relations' own error (:func:`evaluation.relations.reference_noise`), added to
     the chain's (the test is then of ``e ~ N(0, Σ_chain + Σ_ref)``). Relations within one keyframe interval
     are left out."""
-    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn, walk, jitter)
-    path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]  # odometry path length at each keyframe
+    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
+    ref = np.zeros((3, 3)) if reference_cov is None else np.asarray(reference_cov, float)
     rows = []
     for (sa, sb), delta in zip(pairs, truth):
         if sa > sb:
@@ -173,73 +124,56 @@ def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_
             continue
         A = G.relative(keyframe_odometry[ka], scan_odometry[sa])
         B = G.relative(keyframe_odometry[kb], scan_odometry[sb])
-        T, S = chain.relative(ka, kb)
+        T, P, Q, R = chain.parts(ka, kb)
         est = G.inverse(A) @ T @ B
         AdB = G.adjoint(G.inverse(B), planar=True)
-        S = AdB @ S @ AdB.T
-        if reference_cov is not None:
-            S = S + reference_cov
-        rows.append(_row(chain, path, ka, kb, G.se2_log(G.relative(delta, est)), S))
-    return np.array(rows, dtype=float).reshape(-1, 9)
+        rows.append(_sample_row(chain, ka, kb, G.se2_log(G.relative(delta, est)),
+                                AdB @ P @ AdB.T, AdB @ Q @ AdB.T, AdB @ R @ AdB.T + ref))
+    return ChainSample.of(rows)
 
 
-def _row(chain: Chain, path: Array, a: int, b: int, e: Array, S: Array) -> tuple[float, ...]:
-    """One row of :func:`chain_nees` for the chain *a* → *b*, its error *e* and covariance *S*."""
-    return (b - a, float(e @ np.linalg.solve(S, e)) / 3.0, float(np.hypot(e[0], e[1])), abs(float(e[2])),
-            float(np.sqrt(S[0, 0] + S[1, 1])), float(np.sqrt(S[2, 2])), float(path[b] - path[a]),
-            float(e[2]), float(chain.turn[b] - chain.turn[a]))
+def chain_nees(mu: Array, cov: Array, keyframe_of_scan: NDArray[np.int64], scan_odometry: Array,
+               keyframe_odometry: Array, pairs: NDArray[np.int64], truth: Array, drift_rad_per_m: float = 0.0,
+               reference_cov: Array | None = None, drift_per_turn: float = 0.0, walk: float = 1.0,
+               jitter: float = 0.0) -> Array:
+    """:meth:`ChainSample.rows` of :func:`chain_sample` under *walk* and *jitter*: per relation (chain length in
+    keyframes, NEES/dof, translation error m, rotation error rad, predicted translation σ m, predicted rotation σ
+    rad, odometry path length between the keyframes m, signed heading error rad (estimate minus truth), summed
+    signed odometry turn between the keyframes rad)."""
+    return chain_sample(mu, cov, keyframe_of_scan, scan_odometry, keyframe_odometry, pairs, truth, drift_rad_per_m,
+                        reference_cov, drift_per_turn).rows(walk, jitter)
 
 
-def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],
-                 drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0, walk: float = 1.0,
-                 jitter: float = 0.0) -> Array:
-    """:func:`chain_nees` with a run's own loop closures as the reference, where a log has no relations: per closure
-    ``(i, j, i_T_j, covariance)`` between keyframes, the chain's error against it under the chain's covariance
-    plus the closure's (the test is of ``e ~ N(0, Σ_chain + Σ_closure)``). Rows as :func:`chain_nees`'s (the heading
-    error signed as the chain's minus the closure's). A closure was accepted because it agreed with the graph's
-    estimate, which earlier closures had already corrected, so the gate truncates the sample only where the
-    chain is short; for long chains the closures test the chain much as independent relations would
-    (docs/LOOP_CLOSURE.md has both side by side)."""
-    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn, walk, jitter)
-    path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))]
+def _sample_row(chain: Chain, a: int, b: int, e: Array, P: Array, Q: Array, R: Array) -> tuple:
+    """One chain *a* → *b* of a :class:`ChainSample`: its error *e* and covariance parts."""
+    return (b - a, e, P, Q, R, float(chain.path[b] - chain.path[a]), float(chain.turn[b] - chain.turn[a]))
+
+
+def closure_sample(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],
+                   drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0) -> ChainSample:
+    """:func:`chain_sample` with a run's own loop closures as the reference, where a log has no relations: per closure
+    ``(i, j, i_T_j, covariance)`` between keyframes, the chain's error against it, the closure's covariance added to
+    the chain's (the test is of ``e ~ N(0, Σ_chain + Σ_closure)``; the heading error signed as the chain's minus the
+    closure's). A closure was accepted because it agreed with the graph's estimate, which earlier closures had
+    already corrected, so the gate truncates the sample only where the chain is short; for long chains the
+    closures test the chain much as independent relations would (docs/LOOP_CLOSURE.md has both side by side)."""
+    chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
     rows = []
     for i, j, Z, C in closures:
         if i == j:
             continue
         if i > j:  # the same closure seen from the older keyframe (its covariance carried by the adjoint)
             i, j, Z, C = j, i, G.inverse(Z), _inverse_covariance(Z, C)
-        T, S = chain.relative(i, j)
-        rows.append(_row(chain, path, i, j, G.se2_log(G.relative(Z, T)), S + C))
-    return np.array(rows, dtype=float).reshape(-1, 9)
+        T, P, Q, R = chain.parts(i, j)
+        rows.append(_sample_row(chain, i, j, G.se2_log(G.relative(Z, T)), P, Q, R + C))
+    return ChainSample.of(rows)
 
 
-#: Chains at least this long (keyframes) set the walk of :func:`fit_walk`: there the compounded walk, not the
-#: jitter at the ends, makes the covariance.
-LONG_CHAIN_KEYFRAMES = 101
-
-
-def fit_walk(rows_for: Callable[[float], Array], min_chains: int = 30, bounds: tuple[float, float] = (1e-3, 1e2),
-             steps: int = 24) -> tuple[float, int] | None:
-    """The walk (the steps' covariance scale, :class:`Chain`) at which the chains of at least
-    :data:`LONG_CHAIN_KEYFRAMES` keyframes average NEES/dof 1, by bisection on its logarithm (their mean NEES
-    falls as the walk grows); *rows_for(walk)* gives :func:`chain_nees` or :func:`closure_nees` rows. Returns
-    (walk, chains) or None with fewer than *min_chains* such chains; a walk at a bound means the bound was not enough."""
-    def long_mean(w: float) -> tuple[float, int]:
-        r = rows_for(w)
-        m = r[:, 0] >= LONG_CHAIN_KEYFRAMES
-        return (float(r[m, 1].mean()) if m.any() else float("nan")), int(m.sum())
-
-    lo, hi = np.log(bounds[0]), np.log(bounds[1])
-    _, n = long_mean(1.0)
-    if n < min_chains:
-        return None
-    for _ in range(steps):
-        mid = 0.5 * (lo + hi)
-        if long_mean(float(np.exp(mid)))[0] > 1.0:
-            lo = mid  # still overconfident: more walk
-        else:
-            hi = mid
-    return float(np.exp(0.5 * (lo + hi))), n
+def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],
+                 drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0, walk: float = 1.0,
+                 jitter: float = 0.0) -> Array:
+    """:meth:`ChainSample.rows` of :func:`closure_sample` under *walk* and *jitter* (rows as :func:`chain_nees`'s)."""
+    return closure_sample(mu, cov, closures, drift_rad_per_m, drift_per_turn).rows(walk, jitter)
 
 
 @dataclass(frozen=True)

@@ -139,13 +139,27 @@ def test_nees_with_a_rotation_scale_term_is_never_larger_and_the_heading_fit_doe
     own = json.loads((tmp_path / "closures.json").read_text())
     loops = sum(e.kind == "loop" for e in read_g2o(run / "graph.g2o").edges())
     assert own["reference"] == "closures" and own["closures"] == loops == sum(b["n"] for b in own["bins"]) > 0
-    # The walk fitted to them makes the chains of 101 keyframes or more average NEES/dof 1.
-    r = _run("nees", run, "--jitter", 1, "--fit-walk", "--json", tmp_path / "fitted.json")
+    # By default the chains carry the run's own calibration (summary.json), and its table is the summary's.
+    summary = json.loads((run / "summary.json").read_text())
+    model = summary["chain_model"]
+    assert own["model"] == "run" and (own["walk"], own["jitter"]) == (model["walk"], model["jitter"])
+    assert [b["nees_mean"] for b in own["bins"]] == pytest.approx([b["nees_mean"] for b in model["closure_nees"]], rel=1e-9)
+    # The walk fitted to them makes the chains of 101 keyframes or more average NEES/dof 1; without --jitter the
+    # jitter keeps each step's stated covariance, which is the run's own calibration.
+    for extra, name in ((["--jitter", 1], "fixed"), ([], "split")):
+        r = _run("nees", run, *extra, "--fit-walk", "--json", tmp_path / f"{name}.json")
+        assert r.returncode == 0, r.stderr
+        fitted = json.loads((tmp_path / f"{name}.json").read_text())
+        assert fitted["walk_fitted"] and 1e-3 < fitted["walk"] < 1e2
+        long = [b for b in fitted["bins"] if b["lo"] >= 101]
+        assert sum(b["n"] * b["nees_mean"] for b in long) / sum(b["n"] for b in long) == pytest.approx(1.0, rel=1e-3)
+    assert fitted["walk"] == pytest.approx(model["walk"], rel=1e-9) and fitted["jitter"] == pytest.approx((1 - fitted["walk"]) / 2)
+    # The edges as stated: the summary's closure_nees, the loop closer's heading rate included.
+    r = _run("nees", run, "--walk", 1, "--jitter", 0, "--heading-drift", summary["config"]["loops"]["heading_drift_deg_per_m"],
+             "--json", tmp_path / "stated.json")
     assert r.returncode == 0, r.stderr
-    fitted = json.loads((tmp_path / "fitted.json").read_text())
-    assert fitted["walk_fitted"] and 1e-3 < fitted["walk"] < 1e2
-    long = [b for b in fitted["bins"] if b["lo"] >= 101]
-    assert sum(b["n"] * b["nees_mean"] for b in long) / sum(b["n"] for b in long) == pytest.approx(1.0, rel=1e-3)
+    stated = json.loads((tmp_path / "stated.json").read_text())["bins"]
+    assert [b["nees_mean"] for b in stated] == pytest.approx([b["nees_mean"] for b in summary["closure_nees"]], rel=1e-9)
 
 
 def test_nees_without_relations_of_a_run_without_closures_is_one_error_line(tmp_path):

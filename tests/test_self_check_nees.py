@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from core import geometry as G
-from evaluation.nees import (BIN_EDGES, Chain, bin_by_length, chain_nees, closure_nees, fit_walk, fuse_steps,
+from evaluation.chain_model import Chain, calibrate, fit_walk
+from evaluation.nees import (BIN_EDGES, bin_by_length, chain_nees, chain_sample, closure_nees, closure_sample, fuse_steps,
                              heading_by_path, heading_fit)
 from slam.loops.types import LoopClosure
 from slam.pipeline.self_check import SelfCheckConfig, _pair_violation, misplaced, self_check
@@ -156,6 +157,20 @@ def test_nees_against_closures_drawn_with_their_covariance_is_one_per_dof(scale,
         assert b.nees_mean == pytest.approx(expect, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
 
 
+def _jitter_chain(rng, K, J, W):
+    """Truth, and the fused steps of a front end whose keyframes' scan-map poses each carry their own error
+    (covariance *J*) and whose steps add a walk (*W*), each step stated with its whole covariance 2J + W."""
+    steps = [G.xytheta_to_matrix(0.25, 0.0, t) for t in rng.normal(0, 0.1, K)]
+    truth = [np.eye(4)]
+    for s in steps[1:]:
+        truth.append(truth[-1] @ s)
+    truth = np.array(truth)
+    scan = truth @ G.se2_exp(rng.multivariate_normal(np.zeros(3), J, K))  # each keyframe's scan-map pose
+    edges = [(k - 1, k, G.relative(scan[k - 1], scan[k]) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), W)),
+              2 * J + W) for k in range(1, K)]
+    return truth, fuse_steps(K, edges)
+
+
 def test_a_chain_of_jitter_is_consistent_only_with_the_jitter_at_its_ends():
     """Steps measured between scan-map poses that each carry their own error (e_k = j_k − j_(k−1) + w_k, the
     registration's jitter, docs/LOOP_CLOSURE.md): the model that compounds each step's whole covariance
@@ -165,15 +180,7 @@ def test_a_chain_of_jitter_is_consistent_only_with_the_jitter_at_its_ends():
     K = 800
     J = np.diag([0.01**2, 0.01**2, np.radians(0.2) ** 2])
     W = J / 20.0
-    steps = [G.xytheta_to_matrix(0.25, 0.0, t) for t in rng.normal(0, 0.1, K)]
-    truth = [np.eye(4)]
-    for s in steps[1:]:
-        truth.append(truth[-1] @ s)
-    truth = np.array(truth)
-    scan = truth @ G.se2_exp(rng.multivariate_normal(np.zeros(3), J, K))  # each keyframe's scan-map pose
-    edges = [(k - 1, k, G.relative(scan[k - 1], scan[k]) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), W)),
-              2 * J + W) for k in range(1, K)]  # each step's covariance as a front end would state it
-    mu, C = fuse_steps(K, edges)
+    truth, (mu, C) = _jitter_chain(rng, K, J, W)
     pairs = np.array([(a, a + L) for L in (1, 2, 4, 8, 20, 60, 200, 500) for a in range(0, K - L, max(1, L // 4))])
     delta = G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]])
     share = np.trace(J) / np.trace(2 * J + W)  # J and W are proportional here, so the shares are exact
@@ -189,9 +196,37 @@ def test_a_chain_of_jitter_is_consistent_only_with_the_jitter_at_its_ends():
     # With the jitter known, the walk fitted to the long chains is the one they were drawn with.
     long = np.array([(a, a + L) for L in (120, 200, 300, 500) for a in range(0, K - L, 10)])
     truth_long = G.relative(truth[long[:, 0]], truth[long[:, 1]])
-    fitted = fit_walk(lambda w: chain_nees(mu, C, np.arange(K), truth, truth, long, truth_long, walk=w, jitter=share))
+    fitted = fit_walk(chain_sample(mu, C, np.arange(K), truth, truth, long, truth_long), jitter=share)
     assert fitted is not None and fitted[1] >= 30
     assert fitted[0] == pytest.approx(1 - 2 * share, rel=0.3)
+
+
+@pytest.mark.parametrize("walk_share", [0.05, 0.3])
+def test_the_closures_calibrate_the_split_that_makes_every_chain_length_consistent(walk_share):
+    """The run's calibration: closures (long ones, with their own covariance) fit the walk, the jitter is what keeps
+    each step's stated covariance, and the model they give is the one the chains were drawn with: consistent against
+    ground truth at every chain length, from one keyframe to hundreds."""
+    rng = np.random.default_rng(23)
+    K = 900
+    Sigma = np.diag([0.012**2, 0.008**2, np.radians(0.25) ** 2])
+    W, J = walk_share * Sigma, (1 - walk_share) / 2 * Sigma
+    truth, (mu, C) = _jitter_chain(rng, K, J, W)
+    lc = np.diag([0.02**2, 0.02**2, np.radians(0.3) ** 2])
+    closures = []
+    for L in (150, 300, 600):
+        for a in range(0, K - L, 15):
+            Z = G.relative(truth[a], truth[a + L]) @ G.se2_exp(rng.multivariate_normal(np.zeros(3), lc))
+            closures.append((a, a + L, Z, lc))
+    model = calibrate(closure_sample(mu, C, closures))
+    assert model is not None and model.long_chains == len(closures)
+    assert model.walk == pytest.approx(walk_share, rel=0.35)
+    assert model.jitter == pytest.approx((1 - model.walk) / 2)
+    pairs = np.array([(a, a + L) for L in (1, 2, 4, 8, 20, 60, 200, 500) for a in range(0, K - L, max(1, L // 4))])
+    delta = G.relative(truth[pairs[:, 0]], truth[pairs[:, 1]])
+    for b in bin_by_length(chain_sample(mu, C, np.arange(K), truth, truth, pairs, delta).rows(model.walk, model.jitter)):
+        assert b.nees_mean == pytest.approx(1.0, rel=0.3 + 4 * np.sqrt(2 / (3 * b.n))), b
+    # Too few long closures to fit: no model.
+    assert calibrate(closure_sample(mu, C, closures[:20])) is None
 
 
 def test_fused_parallel_edges_add_their_information_and_the_chain_compounds_them():

@@ -17,11 +17,11 @@ def nees_cmd(
     run: Path = typer.Argument(..., help="A slam run folder (graph.g2o, node_stamps.txt, odometry.tum)."),
     relations: Path | None = typer.Argument(None, help="Ground-truth relations 't1 t2 x y z roll pitch yaw' (Kümmerle et al. 2009); without them, the run's own loop closures (graph.g2o) are the reference."),
     stamp_tol: float = typer.Option(1e-3, "--stamp-tol", parser=real(0.0), help="Stamp matching tolerance (s)."),
-    heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: the run's config.yaml (loops.heading_drift_deg_per_m); 0: the edges' covariances alone."),
+    heading_drift: float | None = typer.Option(None, "--heading-drift", parser=real(0.0), help="σ of the loop closer's heading rate (° per m) added to the chain's covariance; default: 0 under a walk and jitter (the run's calibration, or given), the run's config.yaml (loops.heading_drift_deg_per_m) with the edges as stated; 0: none."),
     turn_drift: float = typer.Option(0.0, "--turn-drift", parser=real(0.0), help="σ of a scale error of the odometry's rotation (rad per rad of signed turn) added to the chain's covariance (the loop closer models none; docs/LOOP_CLOSURE.md); 0: none."),
-    walk: float = typer.Option(1.0, "--walk", parser=real(0.0), help="Scale of the steps' covariance before it compounds along a chain (1: as the run modelled it)."),
-    jitter: float = typer.Option(0.0, "--jitter", parser=real(0.0), help="A per-keyframe error the next step undoes: this many times the median step covariance added at both ends of every chain instead of compounded (docs/LOOP_CLOSURE.md, 'The registration's error is jitter'); 0: none."),
-    fit_the_walk: bool = typer.Option(False, "--fit-walk", help="Fit the walk (overriding --walk) so that the chains of at least 101 keyframes average NEES/dof 1, with the --jitter given: the chain model calibrated to the reference (the closures, without RELATIONS)."),
+    walk: float | None = typer.Option(None, "--walk", parser=real(0.0), help="Scale of the steps' covariance before it compounds along a chain; default: the run's own calibration (summary.json chain_model), or 1 (the edges as stated) where it has none."),
+    jitter: float | None = typer.Option(None, "--jitter", parser=real(0.0), help="A per-keyframe error the next step undoes: this many times the median step covariance added at both ends of every chain instead of compounded (docs/LOOP_CLOSURE.md, 'The registration's error is jitter'); default: the run's calibration, or 0."),
+    fit_the_walk: bool = typer.Option(False, "--fit-walk", help="Fit the walk (overriding --walk) so that the chains of at least 101 keyframes average NEES/dof 1 against the reference (the closures, without RELATIONS), with the --jitter given or, without it, the jitter that keeps a step's stated covariance (1 − walk) / 2: the run's calibration, made against this reference."),
     reference: bool = typer.Option(True, "--reference-noise/--no-reference-noise", help="Add the relations' own error, estimated from the triangles they close among themselves (a → b, b → c, a → c), to each chain's covariance."),
     json_out: Path | None = JSON_OPTION,
 ) -> None:
@@ -32,7 +32,8 @@ def nees_cmd(
 
     from core.errors import InputFileError
     from core.trajectory import read_node_stamps
-    from evaluation.nees import LONG_CHAIN_KEYFRAMES, bin_by_length, chain_nees, closure_nees, heading_by_path, heading_fit
+    from evaluation.chain_model import LONG_CHAIN_KEYFRAMES
+    from evaluation.nees import bin_by_length, chain_sample, closure_sample, heading_by_path, heading_fit
     from evaluation.relations import read_relations, reference_noise
     from evaluation.trajectory import nearest_indices
     from slam.graph import read_graph
@@ -46,20 +47,19 @@ def nees_cmd(
         mu, cov = graph_chain(graph)
     except ValueError as err:
         raise InputFileError(run / "graph.g2o", None, str(err)) from None
-    if heading_drift is None:
-        heading_drift = _run_heading_drift(run)
+    stated = walk is None and jitter is None and not fit_the_walk
+    calibrated = _run_chain_model(run) if stated else None
+    if heading_drift is None:  # a walk and jitter, calibrated or given, take the heading rate's place
+        heading_drift = _run_heading_drift(run) if stated and not calibrated else 0.0
     drift = float(np.radians(heading_drift))
     noise = None
     if relations is None:
         closures = graph_closures(graph)
         if not closures:
             raise InputFileError(run / "graph.g2o", None, "holds no loop closure to test the chains against; give RELATIONS")
-        def rows_for(w: float):  # type: ignore[no-untyped-def]
-            return closure_nees(mu, cov, closures, drift, turn_drift, w, jitter)
-
-        walk = _fitted(rows_for, run / "graph.g2o") if fit_the_walk else walk
-        rows = rows_for(walk)
-        typer.echo(f"closures: {len(rows)} (the run's own, with their covariance added to every chain); "
+        sample = closure_sample(mu, cov, closures, drift, turn_drift)
+        source = run / "graph.g2o"
+        typer.echo(f"closures: {len(sample)} (the run's own, with their covariance added to every chain); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
     else:
         node_t = read_node_stamps(run / "node_stamps.txt", graph.node_ids)
@@ -79,13 +79,10 @@ def nees_cmd(
             raise InputFileError(relations, None, f"no relation has both stamps among the scans of {run} (within --stamp-tol {stamp_tol} s)")
         pairs = np.array([(m1[r], m2[r]) for r in keep], dtype=np.int64)
         noise = reference_noise(rel) if reference else None
-        def rows_for(w: float):  # type: ignore[no-untyped-def]
-            return chain_nees(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], drift,
-                              None if noise is None else noise.covariance(), turn_drift, w, jitter)
-
-        walk = _fitted(rows_for, relations) if fit_the_walk else walk
-        rows = rows_for(walk)
-        typer.echo(f"relations: {len(rows)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(rows)}); "
+        sample = chain_sample(mu, cov, kf_scan, scans.poses, kf_odom, pairs, rel.deltas[keep], drift,
+                              None if noise is None else noise.covariance(), turn_drift)
+        source = relations
+        typer.echo(f"relations: {len(sample)} (of {len(rel)}; within one keyframe interval or unmatched: {len(rel) - len(sample)}); "
                    f"heading rate σ {heading_drift:g} °/m, rotation scale σ {turn_drift:g}")
         if noise is not None:
             typer.echo(f"relations' own error, from {noise.triangles} triangles: σ {noise.sigma_translation_m:.4f} m per axis, "
@@ -95,9 +92,20 @@ def nees_cmd(
                            "is a bias no triangle shows)")
         elif reference:
             typer.echo("relations' own error: not estimated (fewer than 20 triangles among the relations)")
-    bins = bin_by_length(rows)
     if fit_the_walk:
-        typer.echo(f"walk fitted: {walk:.4g} (jitter {jitter:g}; chains of at least {LONG_CHAIN_KEYFRAMES} keyframes average 1)")
+        walk, jitter = _fitted(sample, jitter, source)
+        model = "fitted"
+        typer.echo(f"walk fitted: {walk:.4g}, jitter {jitter:.4g} (chains of at least {LONG_CHAIN_KEYFRAMES} keyframes average 1)")
+    elif calibrated:
+        walk, jitter, model = calibrated["walk"], calibrated["jitter"], "run"
+        typer.echo(f"chain model: the run's own calibration (summary.json, from {calibrated['long_chains']} closures): "
+                   f"walk {walk:.4g}, jitter {jitter:.4g}")
+    else:
+        model = "given" if walk is not None or jitter is not None else "edges"
+        walk, jitter = (1.0 if walk is None else walk), (0.0 if jitter is None else jitter)
+        typer.echo(f"chain model: walk {walk:g}, jitter {jitter:g}" + (" (the edges as stated)" if model == "edges" else ""))
+    rows = sample.rows(walk, jitter)
+    bins = bin_by_length(rows)
     typer.echo(f"{'keyframes':>12} {'n':>6} {'NEES/dof':>9} {'median':>8} {'rms_m':>8} {'σ_m':>8} {'rms_deg':>8} {'σ_deg':>8}")
     for b in bins:
         span = f'{b.lo}+' if b.hi >= 10**8 else f'{b.lo}-{b.hi}'
@@ -119,7 +127,7 @@ def nees_cmd(
     save_json(json_out, {"reference": "relations" if relations is not None else "closures",
                           "relations" if relations is not None else "closures": len(rows),
                           "heading_drift_deg_per_m": heading_drift, "turn_drift_rad_per_rad": turn_drift,
-                          "walk": walk, "walk_fitted": fit_the_walk, "jitter": jitter,
+                          "model": model, "walk": walk, "walk_fitted": fit_the_walk, "jitter": jitter,
                           "bins": [b.as_dict() for b in bins],
                           "heading_by_path": [h.as_dict() for h in by_path],
                           "heading_fit": None if fit is None else fit.as_dict(),
@@ -128,15 +136,25 @@ def nees_cmd(
                               "sigma_rotation_deg": float(np.degrees(noise.sigma_rotation_rad)), "triangles": noise.triangles}})
 
 
-def _fitted(rows_for, source: Path) -> float:  # type: ignore[no-untyped-def]
-    """:func:`evaluation.nees.fit_walk` of *rows_for*, or a one-line error naming *source* (too few long chains)."""
+def _fitted(sample, jitter: float | None, source: Path) -> tuple[float, float]:  # type: ignore[no-untyped-def]
+    """:func:`evaluation.chain_model.fit_walk` of the *sample* (walk, jitter), or a one-line error naming *source*."""
     from core.errors import InputFileError
-    from evaluation.nees import LONG_CHAIN_KEYFRAMES, fit_walk
+    from evaluation.chain_model import LONG_CHAIN_KEYFRAMES, fit_walk, split_jitter
 
-    fitted = fit_walk(rows_for)
+    fitted = fit_walk(sample, jitter)
     if fitted is None:
         raise InputFileError(source, None, f"fewer than 30 chains of {LONG_CHAIN_KEYFRAMES} keyframes or more to fit the walk to")
-    return fitted[0]
+    return fitted[0], split_jitter(fitted[0]) if jitter is None else jitter
+
+
+def _run_chain_model(run: Path) -> dict | None:
+    """The run's own calibrated chain model (``summary.json``'s ``chain_model``), or None where it has none (no
+    summary, or too few closures to calibrate on); a summary that is not one is an error naming it."""
+    from core.run_summary import read_run_summary
+
+    if not (run / "summary.json").is_file():
+        return None
+    return read_run_summary(run / "summary.json").chain_model
 
 
 def _run_heading_drift(run: Path) -> float:

@@ -1,9 +1,11 @@
 """The front end's chains of a finished pose graph, and the run's own closures as their reference.
 
 ``slam eval nees`` tests the chains of odometry edges (each step's registration and wheel edges fused) against
-ground-truth relations or, where a log has none, against the closures the run kept; every 2D run reports the
-latter in ``summary.json`` (``closure_nees``), a consistency table of its covariance that needs no reference
-(:func:`evaluation.nees.closure_nees`; docs/LOOP_CLOSURE.md, "Against the run's own closures").
+ground-truth relations or, where a log has none, against the closures the run kept. Every 2D run reports the
+latter in ``summary.json``: ``closure_nees``, a consistency table of its covariance as the edges state it, and
+``chain_model``, that covariance split into the walk and jitter its long closures call for, with the table under it
+(:mod:`evaluation.chain_model`; docs/LOOP_CLOSURE.md, "Against the run's own closures" and "A chain model
+calibrated by the run's closures").
 """
 
 from __future__ import annotations
@@ -11,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from evaluation.nees import bin_by_length, closure_nees, fuse_steps
+from evaluation.chain_model import calibrate
+from evaluation.nees import bin_by_length, closure_sample, fuse_steps
 from slam.graph.posegraph import KINDS, PoseGraph
 
 Array = NDArray[np.float64]
@@ -34,16 +37,25 @@ def graph_closures(graph: PoseGraph) -> list[tuple[int, int, Array, Array]]:
             for e in np.flatnonzero(a.kinds == KINDS.index("loop"))]
 
 
-def closure_consistency(graph: PoseGraph, drift_rad_per_m: float) -> list[dict] | None:
-    """NEES/dof of the chains against the closures, per chain length (:class:`evaluation.nees.NeesBin` as dicts);
-    None for a 3D graph, a graph without closures, or one whose chain has a step without an edge."""
+def closure_consistency(graph: PoseGraph, drift_rad_per_m: float) -> tuple[list[dict] | None, dict | None]:
+    """NEES/dof of the chains against the closures per chain length (:class:`evaluation.nees.NeesBin` as dicts),
+    under the edges as stated with the loop closer's heading rate *drift_rad_per_m*; and the chain model the long
+    closures calibrate (:func:`evaluation.chain_model.calibrate`, with its own table under ``closure_nees``).
+    (None, None) for a 3D graph, a graph without closures, or one whose chain has a step without an edge; the
+    model is None with too few long closures."""
     if graph.dim != 2:
-        return None
+        return None, None
     closures = graph_closures(graph)
     if not closures:
-        return None
+        return None, None
     try:
         mu, cov = graph_chain(graph)
     except ValueError:
-        return None
-    return [b.as_dict() for b in bin_by_length(closure_nees(mu, cov, closures, drift_rad_per_m))]
+        return None, None
+    as_stated = [b.as_dict() for b in bin_by_length(closure_sample(mu, cov, closures, drift_rad_per_m).rows())]
+    sample = closure_sample(mu, cov, closures)  # the walk takes the heading rate's place
+    model = calibrate(sample)
+    if model is None:
+        return as_stated, None
+    return as_stated, model.as_dict() | {
+        "closure_nees": [b.as_dict() for b in bin_by_length(sample.rows(model.walk, model.jitter))]}

@@ -85,6 +85,8 @@ def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wa
     *wall_time_s* until the last file, *outputs_s* writing the files, *peak_main_mb* this process's peak (the
     stage processes' come with the result); *skipped* the :class:`~slam.logs.SkipLog` of ``on_error: skip``."""
     n = len(result.stamps)
+    closure_nees, chain_model = closure_consistency(result.backend.graph,
+                                                    float(np.radians(config.loops.heading_drift_deg_per_m)))
     scans_lost, exact = skipped.scans() if skipped is not None else (0, True)
     peaks = {"main": float(peak_main_mb), **result.peak_memory_mb}
     return RunSummary(
@@ -102,7 +104,7 @@ def summarise(result: SlamResult, log: str, config: SlamConfig, run_s: float, wa
         pruned_closures=_pruned(result),
         variance_components=(result.backend.variance_components.as_dict()
                              if result.backend.variance_components is not None else None),
-        closure_nees=closure_consistency(result.backend.graph, float(np.radians(config.loops.heading_drift_deg_per_m))),
+        closure_nees=closure_nees, chain_model=chain_model,
     )
 
 
