@@ -160,6 +160,16 @@ def test_nees_with_a_rotation_scale_term_is_never_larger_and_the_heading_fit_doe
     assert r.returncode == 0, r.stderr
     stated = json.loads((tmp_path / "stated.json").read_text())["bins"]
     assert [b["nees_mean"] for b in stated] == pytest.approx([b["nees_mean"] for b in summary["closure_nees"]], rel=1e-9)
+    # benchmarks/chain_model.py reads the same run as the CLI does: the run's walk, and the relations' table under it.
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    from chain_model import measure
+
+    r = _run("nees", run, DATA / "intel.relations", "--json", tmp_path / "calibrated.json")
+    assert r.returncode == 0, r.stderr
+    cli = json.loads((tmp_path / "calibrated.json").read_text())
+    bench = measure(run, DATA / "intel.relations", 10)
+    assert bench["walk_closures"] == pytest.approx(model["walk"], abs=1e-4) and bench["relations"] == cli["relations"]
+    assert [b["nees_mean"] for b in bench["calibrated"]["table"]] == pytest.approx([b["nees_mean"] for b in cli["bins"]], abs=1e-3)
 
 
 def test_nees_without_relations_of_a_run_without_closures_is_one_error_line(tmp_path):
