@@ -161,9 +161,12 @@ def test_nees_with_a_rotation_scale_term_is_never_larger_and_the_heading_fit_doe
     stated = json.loads((tmp_path / "stated.json").read_text())["bins"]
     assert [b["nees_mean"] for b in stated] == pytest.approx([b["nees_mean"] for b in summary["closure_nees"]], rel=1e-9)
     # benchmarks/chain_model.py reads the same run as the CLI does: the run's walk, and the relations' table under it.
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
-    from chain_model import measure
+    import importlib.util
 
+    spec = importlib.util.spec_from_file_location("bench_chain_model", Path(__file__).resolve().parent.parent / "benchmarks" / "chain_model.py")
+    bench_module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_module)
+    measure = bench_module.measure
     r = _run("nees", run, DATA / "intel.relations", "--json", tmp_path / "calibrated.json")
     assert r.returncode == 0, r.stderr
     cli = json.loads((tmp_path / "calibrated.json").read_text())
