@@ -182,6 +182,32 @@ def test_nees_without_relations_of_a_run_without_closures_is_one_error_line(tmp_
     assert len(r.stderr.strip().splitlines()) == 1
 
 
+def test_nees_of_a_graph_without_a_summary_takes_the_edges_as_stated_and_a_broken_summary_is_one_error_line(tmp_path):
+    """A run folder without summary.json (a graph from elsewhere, or a run older than the calibration) is tested
+    with its edges as stated; a summary.json that is not one is named in one error line, never skipped silently."""
+    from slam.graph import PoseGraph, write_g2o
+
+    n = 40
+    th = np.linspace(0, 4 * np.pi, n, endpoint=False)
+    gt = geo.xytheta_to_matrix(5 * np.cos(th), 5 * np.sin(th), th + np.pi / 2)
+    g = PoseGraph(2)
+    for k in range(n):
+        g.add_node(k, gt[k])
+    for k in range(n - 1):
+        g.add_edge(k, k + 1, geo.relative(gt[k], gt[k + 1]), np.eye(3) * 100)
+    for k in range(10):
+        g.add_edge(k, k + 20, geo.relative(gt[k], gt[k + 20]), np.eye(3) * 100, "loop")
+    write_g2o(g, tmp_path / "graph.g2o")
+    r = _run("nees", tmp_path, "--json", tmp_path / "n.json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads((tmp_path / "n.json").read_text())
+    assert out["model"] == "edges" and (out["walk"], out["jitter"]) == (1.0, 0.0) and out["closures"] == 10
+    (tmp_path / "summary.json").write_text("{not json")
+    r = _run("nees", tmp_path)
+    assert r.returncode == 2 and "summary.json" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
 def test_nees_of_a_folder_that_is_no_run_is_one_error_line(tmp_path):
     r = _run("nees", tmp_path, tmp_path / "none.relations")
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr
