@@ -62,20 +62,28 @@ def test_relations_none_of_which_match_the_trajectory_are_an_error(tmp_path):
     assert "t.tum" in lines[0] and "x.relations" in lines[0] and "nan" not in r.stdout
 
 
-def test_loops_cli_with_ground_truth(tmp_path):
-    """`slam eval loops GRAPH --gt` prints the self-scored precision and the ground-truth precision/recall."""
-    pytest.importorskip("slam.graph")
-    from slam.graph import PoseGraph, write_g2o
+def _two_laps(n: int):  # type: ignore[no-untyped-def]
+    """Two laps of a 5 m circle in *n* poses, and the planar graph of its exact odometry (information 100)."""
+    from slam.graph import PoseGraph
 
-    n = 60
     th = np.linspace(0, 4 * np.pi, n, endpoint=False)
     gt = geo.xytheta_to_matrix(5 * np.cos(th), 5 * np.sin(th), th + np.pi / 2)
     g = PoseGraph(2)
     for k in range(n):
         g.add_node(k, gt[k])
-    info = np.eye(3) * 100
     for k in range(n - 1):
-        g.add_edge(k, k + 1, geo.relative(gt[k], gt[k + 1]), info)
+        g.add_edge(k, k + 1, geo.relative(gt[k], gt[k + 1]), np.eye(3) * 100)
+    return gt, g
+
+
+def test_loops_cli_with_ground_truth(tmp_path):
+    """`slam eval loops GRAPH --gt` prints the self-scored precision and the ground-truth precision/recall."""
+    pytest.importorskip("slam.graph")
+    from slam.graph import write_g2o
+
+    n = 60
+    gt, g = _two_laps(n)
+    info = np.eye(3) * 100
     for k in range(0, 10):
         C = np.eye(4) if k < 8 else geo.xytheta_to_matrix(0.0, 0.5, 0.0)
         g.add_edge(k, k + 30, geo.relative(gt[k], gt[k + 30]) @ C, info)
@@ -185,16 +193,9 @@ def test_nees_without_relations_of_a_run_without_closures_is_one_error_line(tmp_
 def test_nees_of_a_graph_without_a_summary_takes_the_edges_as_stated_and_a_broken_summary_is_one_error_line(tmp_path):
     """A run folder without summary.json (a graph from elsewhere, or a run older than the calibration) is tested
     with its edges as stated; a summary.json that is not one is named in one error line, never skipped silently."""
-    from slam.graph import PoseGraph, write_g2o
+    from slam.graph import write_g2o
 
-    n = 40
-    th = np.linspace(0, 4 * np.pi, n, endpoint=False)
-    gt = geo.xytheta_to_matrix(5 * np.cos(th), 5 * np.sin(th), th + np.pi / 2)
-    g = PoseGraph(2)
-    for k in range(n):
-        g.add_node(k, gt[k])
-    for k in range(n - 1):
-        g.add_edge(k, k + 1, geo.relative(gt[k], gt[k + 1]), np.eye(3) * 100)
+    gt, g = _two_laps(40)
     for k in range(10):
         g.add_edge(k, k + 20, geo.relative(gt[k], gt[k + 20]), np.eye(3) * 100, "loop")
     write_g2o(g, tmp_path / "graph.g2o")
