@@ -56,25 +56,44 @@ class Chain:
 
     def __init__(self, mu: Array, cov: Array, drift_rad_per_m: float = 0.0, drift_per_turn: float = 0.0,
                  walk: float = 1.0, jitter: float = 0.0) -> None:
-        K = len(mu)
         self.drift = float(drift_rad_per_m)
         self.drift_turn = float(drift_per_turn)
         self.walk, self.jitter = float(walk), float(jitter)
-        self.step_median = np.median(cov[1:], axis=0) if K > 1 else np.zeros((3, 3))
-        cov = np.asarray(cov, dtype=float)
-        self.C = np.zeros((K, 4, 4))
-        self.C[0] = np.eye(4)
-        self.S = np.zeros((K, 3, 3))
-        self.J = np.zeros((K, 3))  # J_k = Σ_{m ≤ k} Ad(C_m) (0, 0, ℓ_m): the heading rate's prefix
-        self.W = np.zeros((K, 3))  # W_k = Σ_{m ≤ k} Ad(C_m) (0, 0, Δθ_m): the rotation scale error's prefix
-        self.turn = np.r_[0.0, np.cumsum(np.arctan2(mu[1:, 1, 0], mu[1:, 0, 0]))] if K else np.zeros(0)
-        self.path = np.r_[0.0, np.cumsum(np.linalg.norm(mu[1:, :2, 3], axis=1))] if K else np.zeros(0)
-        for k in range(1, K):
-            self.C[k] = self.C[k - 1] @ mu[k]
-            A = G.adjoint(self.C[k], planar=True)
-            self.S[k] = self.S[k - 1] + A @ cov[k] @ A.T
-            self.J[k] = self.J[k - 1] + A[:, 2] * float(np.linalg.norm(mu[k][:2, 3]))
-            self.W[k] = self.W[k - 1] + A[:, 2] * (self.turn[k] - self.turn[k - 1])
+        # Per keyframe k (lists, so that a chain can grow online): C_k, S_k, J_k = Σ_{m ≤ k} Ad(C_m) (0, 0, ℓ_m) (the
+        # heading rate's prefix), W_k = Σ_{m ≤ k} Ad(C_m) (0, 0, Δθ_m) (the rotation scale error's), the summed signed
+        # turn and the odometry path length.
+        self.C, self.S = [np.eye(4)], [np.zeros((3, 3))]
+        self.J, self.W = [np.zeros(3)], [np.zeros(3)]
+        self.turn, self.path = [0.0], [0.0]
+        self._covs: list[Array] = []
+        self._median: Array | None = None
+        for k in range(1, len(mu)):
+            self.extend(mu[k], cov[k])
+
+    def __len__(self) -> int:
+        return len(self.C)
+
+    def extend(self, step: Array, cov: Array) -> None:
+        """One more keyframe: the step ``(4, 4)`` from the last one and its covariance ``(3, 3)``."""
+        C = self.C[-1] @ step
+        A = G.adjoint(C, planar=True)
+        turn = float(np.arctan2(step[1, 0], step[0, 0]))
+        length = float(np.linalg.norm(step[:2, 3]))
+        self.C.append(C)
+        self.S.append(self.S[-1] + A @ np.asarray(cov, float) @ A.T)
+        self.J.append(self.J[-1] + A[:, 2] * length)
+        self.W.append(self.W[-1] + A[:, 2] * turn)
+        self.turn.append(self.turn[-1] + turn)
+        self.path.append(self.path[-1] + length)
+        self._covs.append(np.asarray(cov, float))
+        self._median = None
+
+    @property
+    def step_median(self) -> Array:
+        """The median step covariance (the jitter's unit)."""
+        if self._median is None:
+            self._median = np.median(np.array(self._covs), axis=0) if self._covs else np.zeros((3, 3))
+        return self._median
 
     def parts(self, a: int, b: int) -> tuple[Array, Array, Array, Array]:
         """``a_T_b`` along the chain (a ≤ b) and its covariance's parts: the compounded steps P (walk 1), the jitter

@@ -81,17 +81,22 @@ def fuse_steps(K: int, edges: list[tuple[int, int, Array, Array]]) -> tuple[Arra
     for k in range(1, K):
         if k not in by_step:
             raise ValueError(f"no edge between keyframes {k - 1} and {k}")
-        base, _ = by_step[k][0]
-        info = np.zeros((3, 3))
-        vec = np.zeros(3)
-        for T, C in by_step[k]:
-            W = np.linalg.inv(C)
-            info += W
-            vec += W @ G.se2_log(G.relative(base, T))
-        S = np.linalg.inv(info)
-        mu[k] = base @ G.se2_exp(S @ vec)
-        cov[k] = S
+        mu[k], cov[k] = fuse_step(by_step[k])
     return mu, cov
+
+
+def fuse_step(edges: list[tuple[Array, Array]]) -> tuple[Array, Array]:
+    """Parallel edges ``(a_T_b, covariance)`` of one step fused: information added on the tangent space of the first
+    edge (Gauss–Newton's first step, exact to first order); the fused mean and covariance."""
+    base, _ = edges[0]
+    info = np.zeros((3, 3))
+    vec = np.zeros(3)
+    for T, C in edges:
+        W = np.linalg.inv(C)
+        info += W
+        vec += W @ G.se2_log(G.relative(base, T))
+    S = np.linalg.inv(info)
+    return base @ G.se2_exp(S @ vec), S
 
 
 def _inverse_covariance(T: Array, cov: Array) -> Array:
@@ -158,15 +163,21 @@ def closure_sample(mu: Array, cov: Array, closures: list[tuple[int, int, Array, 
     already corrected, so the gate truncates the sample only where the chain is short; for long chains the
     closures test the chain much as independent relations would (docs/LOOP_CLOSURE.md has both side by side)."""
     chain = Chain(mu, cov, drift_rad_per_m, drift_per_turn)
-    rows = []
-    for i, j, Z, C in closures:
-        if i == j:
-            continue
-        if i > j:  # the same closure seen from the older keyframe (its covariance carried by the adjoint)
-            i, j, Z, C = j, i, G.inverse(Z), _inverse_covariance(Z, C)
-        T, P, Q, R = chain.parts(i, j)
-        rows.append(_sample_row(chain, i, j, G.se2_log(G.relative(Z, T)), P, Q, R + C))
+    rows = [closure_row(chain, i, j, Z, C) for i, j, Z, C in closures if i != j]
     return ChainSample.of(rows)
+
+
+def closure_row(chain: Chain, i: int, j: int, Z: Array, C: Array, constants_scale: bool = False) -> tuple:
+    """One closure ``(i, j, i_T_j, covariance)`` (i ≠ j, either older) as a :class:`ChainSample` row: the *chain*'s
+    error against it, with the closure's covariance in the fixed part. *constants_scale*: the chain's random
+    constants (heading rate, rotation scale) go with the walk part instead, so that a walk scales the chain's
+    whole covariance."""
+    if i > j:  # the same closure seen from the older keyframe (its covariance carried by the adjoint)
+        i, j, Z, C = j, i, G.inverse(Z), _inverse_covariance(Z, C)
+    T, P, Q, R = chain.parts(i, j)
+    if constants_scale:
+        P, R = P + R, np.zeros((3, 3))
+    return _sample_row(chain, i, j, G.se2_log(G.relative(Z, T)), P, Q, R + C)
 
 
 def closure_nees(mu: Array, cov: Array, closures: list[tuple[int, int, Array, Array]],

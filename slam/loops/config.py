@@ -24,6 +24,7 @@ class LoopConfig(BaseModel):
     overlap_radius_m: float | None = Field(None, gt=0, description="two keyframes this close can see the same structure (the search radius before uncertainty); None: the upper quartile of the ranges of the new keyframe's scan points, a property of the sensor in its environment")
     window_sigmas: float = Field(3.0, gt=0, description="search windows and radii span this many standard deviations of the estimate's relative uncertainty")
     heading_drift_deg_per_m: float = Field(0.015, ge=0, description="σ of a heading rate (° per metre travelled) common to a whole stretch of odometry: the systematic drift independent edge noise cannot represent, added to every place's uncertainty along its path (0: none)")
+    window_calibration: bool = Field(True, description="2D: once at least 30 accepted closures span 101 keyframes or more, every variance the closer uses (windows, gates) is scaled up by the factor at which their chains average NEES/dof 1 under this model, when that factor exceeds 1 (slam.loops.calibration); the stated model stays the floor")
     window_floor_m: float = Field(1.0, gt=0, description="smallest correlative search window (± m): what the graph's covariance does not model (local-map blur, ICP basins)")
     window_floor_deg: float = Field(5.0, gt=0, description="smallest correlative heading window (± degrees)")
     max_window_m: float = Field(10.0, gt=0, description="largest spatial search window (± m), a cost bound; places the estimate cannot place within it are left to the global search")

@@ -113,6 +113,7 @@ class RelativeUncertainty:
         self.planar = planar
         self.limit_m2 = float(limit_m2)
         self.drift = float(drift_rad_per_m)
+        self.scale = 1.0  # every variance times this (≥ 1: the run's own closures found the model too sure, slam.loops.calibration)
         # Edges in arrays that double when full (read every keyframe: no list-to-array copy each time),
         # kept sorted by keyframe pair (newer end, then older end): a new keyframe's edges go in at or
         # near the end, so inserting in place is cheap and the search needs no sort.
@@ -175,7 +176,7 @@ class RelativeUncertainty:
         vt, vr = self._step_var[steps, 0], self._step_var[steps, 1]
         ell = self._step_len[steps]
         dt, dr = self._drift_variance(float(np.sum(ell)), float(np.sum(ell * np.sqrt(lever2))))
-        return float(np.sum(vt + vr * lever2)) + dt, float(np.sum(vr)) + dr
+        return self.scale * (float(np.sum(vt + vr * lever2)) + dt), self.scale * (float(np.sum(vr)) + dr)
 
     def _drift_variance(self, length_m, moment_m2):  # type: ignore[no-untyped-def]
         """(position, rotation) variance traces of the random-constant heading rate over a path of odometry
@@ -231,4 +232,9 @@ class RelativeUncertainty:
         dt = np.where(reached, np.minimum(dt, limit - pos_var), 0.0)
         dr = np.where(reached, dr, 0.0)
         rot_var = np.where(reached, acc[:, 0], limit)
+        if self.scale != 1.0:
+            s = self.scale
+            pos_var, dt = np.where(reached, np.minimum(s * pos_var, limit), pos_var), np.where(reached, s * dt, 0.0)
+            dt = np.where(reached, np.minimum(dt, limit - pos_var), 0.0)
+            rot_var, dr = np.where(reached, s * rot_var, rot_var), s * dr
         return NodeUncertainty(pos_var + dt, rot_var + dr, dt, dr)

@@ -18,6 +18,7 @@ from .backend import PipelineBackend
 from .config import BackendConfig, LoopConfig
 from .frontend import Keyframe, OdometryEdge, WheelEdge
 from slam.loops import LoopCloser, LoopClosure
+from slam.loops.calibration import WindowCalibration
 from slam.loops.uncertainty import RelativeUncertainty
 
 Array = NDArray[np.float64]
@@ -36,6 +37,10 @@ class OnlineGraph:
         self.uncertainty = RelativeUncertainty(planar, limit_m2=100.0**2,
                                                drift_rad_per_m=float(np.radians(loops.heading_drift_deg_per_m)))
         self.closer = LoopCloser(loops, planar, self.uncertainty)
+        # The run's own long closures widen that uncertainty where it is too sure (2D chains only).
+        self.calibration = (WindowCalibration(float(np.radians(loops.heading_drift_deg_per_m)))
+                            if planar and loops.window_calibration else None)
+        self.window_scale_max = 1.0
         self._keyframes: list[Keyframe] = []  # every keyframe so far (the last add's)
         self.times = {"loop_closure_s": 0.0, "backend_s": 0.0}
 
@@ -54,6 +59,9 @@ class OnlineGraph:
             if wheel is not None:
                 be.add_odometry(wheel.i, wheel.j, wheel.measurement, wheel.covariance, group="wheel")
                 self.uncertainty.add_edge(wheel.i, wheel.j, wheel.covariance, float(np.linalg.norm(wheel.measurement[:self.dim, 3])))
+            if self.calibration is not None:
+                for e in (edge, wheel) if wheel is not None else (edge,):
+                    self.calibration.add_step(e.i, e.j, e.measurement, e.covariance)
         t1 = time.perf_counter()
         poses = be.poses
         unc = self.uncertainty.from_node(kf.id, poses[:, : self.dim, 3])
@@ -82,7 +90,12 @@ class OnlineGraph:
         for lc in closures:
             be.add_loop(lc)
             self.uncertainty.add_edge(lc.i, lc.j, lc.covariance)
+            if self.calibration is not None:
+                self.calibration.add_closure(lc.i, lc.j, lc.measurement, lc.covariance)
         self.loops.extend(closures)
+        if self.calibration is not None and closures:
+            self.uncertainty.scale = self.calibration.update()
+            self.window_scale_max = max(self.window_scale_max, self.uncertainty.scale)
         if not relocalise:
             be.update(loop_added=bool(closures))
             return
@@ -103,5 +116,7 @@ class OnlineGraph:
         """Loop detection counters plus the closures pruned by the final solve."""
         s = self.closer.summary()
         s["pruned"] = self.backend.pruned_loops
+        s["window_scale"] = self.uncertainty.scale  # the closures' calibration of the closer's variances at the end
+        s["window_scale_max"] = self.window_scale_max
         s["isam2_restarts"] = self.backend.smoother_restarts
         return s
