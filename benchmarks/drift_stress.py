@@ -9,7 +9,9 @@ the back end (:func:`slam.pipeline.loop_replay.replay_loops`, which accepts exac
 Bias 0 reproduces ``slam run``.
 
 Reported per log and bias, for the default configuration and, side by side, the same without the loop
-closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0; ``--no-reference`` skips it): the relation error (Kümmerle et al. 2009) of every scan's pose, the closures
+closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0) and with the closures' calibration of its
+variances (``loops.window_calibration`` on, off by default; ``--no-reference`` skips both): the relation error
+(Kümmerle et al. 2009) of every scan's pose, the largest variance scale the calibration reached, the closures
 accepted, the precision after the final solve (Cartographer's 20 cm / 1°), the global searches (with the
 global matches admitted beyond the gate because another agreed, ``corroborated``, and the keyframes sought again
 after a relocalisation, ``reseeks``), and the
@@ -115,7 +117,8 @@ def against_truth(record: FrontEndRecord, rep: LoopReplay) -> dict:
 def stress(log: Path, relations: Path | None, biases: list[float], config: SlamConfig, reference: bool,
            bends: list[float] = (), jumps_m: list[float] = (), jumps_deg: list[float] = ()) -> dict:
     """Per bias (``bias``) and per bend (``bend``), the default configuration and, with *reference*, the same
-    without the loop closer's heading-rate term (``…_without_heading_rate``), replayed on one recording.
+    without the loop closer's heading-rate term (``…_without_heading_rate``) and with the closures' calibration of
+    its variances (``…_with_window_calibration``), replayed on one recording.
     Scored against the *relations*, or without them against the frames' true poses."""
     t0 = time.perf_counter()
     record = record_front_end(open_log(log).frames(), config)
@@ -126,6 +129,7 @@ def stress(log: Path, relations: Path | None, biases: list[float], config: SlamC
     variants = [("", config.loops)]
     if reference:
         variants.append(("_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
+        variants.append(("_with_window_calibration", config.loops.model_copy(update={"window_calibration": True})))
     cases = [("bias", str(b), lambda b=b: tilted(record, b)) for b in biases]
     cases += [("bend", str(d), lambda d=d: bent(record, d)) for d in bends]
     cases += [("jump_m", str(m), lambda m=m: jumped(record, along_m=m)) for m in jumps_m]
@@ -149,6 +153,7 @@ def stress(log: Path, relations: Path | None, biases: list[float], config: SlamC
                 "closures_accepted": acc, "pruned": int(st.get("pruned", 0)),
                 "precision": round((acc - int(st.get("pruned", 0))) / acc, 4) if acc else None,
                 "global_searches": int(st.get("global_searches", 0)),
+                "window_scale_max": round(float(st.get("window_scale_max", 1.0)), 2),
                 "corroborated": int(st.get("corroborated", 0)), "reseeks": int(st.get("reseeks", 0)),
                 "self_check": sc.verdict, "contradicting": f"{sc.keyframes_contradicting}/{sc.keyframes_checked}",
                 "changed": sc.keyframes_changed,

@@ -47,3 +47,16 @@ def test_the_pass_refused_before_the_relocalisation_is_sought_again(hospital_wit
     contradicting keyframes, ``suspect``)."""
     r = hospital_with_drift["-0.05"]
     assert r["reseeks"] > 0 and r["contradicting"].startswith("0/"), r
+
+
+def test_with_the_closures_calibrating_the_closer_a_return_beyond_any_fixed_model_closes():
+    """At +0.08 °/m (5.3 σ of the heading-rate model) the default closer loses the return (7.58 m, `suspect`,
+    docs/LOOP_CLOSURE.md); with ``loops.window_calibration`` the long closures of the first loops find the model too
+    sure, the windows and gates widen by that much, and the return closes."""
+    cfg = SlamConfig()
+    cfg = cfg.model_copy(update={"loops": cfg.loops.model_copy(update={"window_calibration": True})})
+    log = shared_path("slam2d_kummerle_benchmark", "fr-clinic_robotlaser.clf.bz2")
+    rel = shared_path("slam2d_kummerle_benchmark", "fr-clinic.relations")
+    r = _drift_stress().stress(log, rel, [0.08], cfg, reference=False)["bias"]["0.08"]
+    assert r["window_scale_max"] > 2.0, r
+    assert r["relation_error_m"] < 0.12 and r["precision"] >= 0.99, r
