@@ -21,8 +21,8 @@ dominates): the walk share w is the one at which they average NEES/dof 1 against
 share is then ``(1 − w) / 2`` (:func:`split_jitter`; 0 once w ≥ 1, steps overconfident even alone). Against the
 run's own closures this needs no ground truth; a closure is accepted against the graph's corrected estimate, not
 against the chain, so long chains are barely selected by the gate. On the development set the closures' walk is
-the relations' to within 25 % where the relations are a clean reference (Intel, MIT CSAIL, both also without
-wheels; docs/LOOP_CLOSURE.md, "A chain model calibrated by the run's closures").
+the relations' to within 25 % wherever the relations are a clean reference (docs/LOOP_CLOSURE.md, "A chain model
+calibrated by the run's closures").
 """
 
 from __future__ import annotations

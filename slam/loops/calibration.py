@@ -12,8 +12,8 @@ it is) multiplies every variance the closer uses, if it exceeds 1; the stated mo
 conservative run searches exactly as before. A closure is tested against the chain, not against the estimate it
 was gated on, so long chains are a fair sample of the chain's error even though the gate selected them.
 
-Measured (docs/LOOP_CLOSURE.md, "The closer's variances widened by its own closures"): the Freiburg hospital with
-an injected heading bias of 0.08 °/m closes its return (7.58 → 0.11 m), but one of 14 simulated rings of corridors
+Measured (docs/LOOP_CLOSURE.md, "The closer's variances widened by its own closures"): a benchmark log with an
+injected heading bias of 0.08 °/m closes its return (7.58 → 0.11 m), but one of 14 simulated rings of corridors
 takes corridor aliases through the widened gates (0.20 → 1.69 m); widening the windows alone, gates as stated,
 changes neither. So ``loops.window_calibration`` is off by default.
 """
