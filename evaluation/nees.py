@@ -72,10 +72,9 @@ def fuse_steps(K: int, edges: list[tuple[int, int, Array, Array]]) -> tuple[Arra
     Raises ValueError when a step has no edge."""
     by_step: dict[int, list[tuple[Array, Array]]] = {}
     for i, j, T, cov in edges:
-        if j == i + 1:
-            by_step.setdefault(j, []).append((np.asarray(T, float), np.asarray(cov, float)))
-        elif i == j + 1:
-            by_step.setdefault(i, []).append((G.inverse(T), _inverse_covariance(T, cov)))
+        step = forward_step(i, j, T, cov)
+        if step is not None:
+            by_step.setdefault(step[0], []).append(step[1:])
     mu = np.tile(np.eye(4), (K, 1, 1))
     cov = np.zeros((K, 3, 3))
     for k in range(1, K):
@@ -97,6 +96,16 @@ def fuse_step(edges: list[tuple[Array, Array]]) -> tuple[Array, Array]:
         vec += W @ G.se2_log(G.relative(base, T))
     S = np.linalg.inv(info)
     return base @ G.se2_exp(S @ vec), S
+
+
+def forward_step(i: int, j: int, T: Array, cov: Array) -> tuple[int, Array, Array] | None:
+    """An edge ``(i, j, i_T_j, covariance)`` between consecutive keyframes as the step k it measures (keyframe
+    k − 1 → k), forward: ``(k, (k−1)_T_k, covariance)``; None for an edge between keyframes further apart."""
+    if j == i + 1:
+        return j, np.asarray(T, float), np.asarray(cov, float)
+    if i == j + 1:
+        return i, G.inverse(T), _inverse_covariance(T, cov)
+    return None
 
 
 def _inverse_covariance(T: Array, cov: Array) -> Array:

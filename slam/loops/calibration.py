@@ -23,9 +23,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from core import geometry as G
 from evaluation.chain_model import LONG_CHAIN_KEYFRAMES, Chain, ChainSample, fit_walk
-from evaluation.nees import closure_row, fuse_step
+from evaluation.nees import closure_row, forward_step, fuse_step
 
 Array = NDArray[np.float64]
 
@@ -50,11 +49,9 @@ class WindowCalibration:
 
     def add_step(self, i: int, j: int, measurement: Array, covariance: Array) -> None:
         """An odometry or wheel edge between consecutive keyframes *i* and *j* (planar, 3×3 covariance)."""
-        if j == i + 1:
-            self._steps.setdefault(j, []).append((np.asarray(measurement, float), np.asarray(covariance, float)))
-        elif i == j + 1:
-            A = G.adjoint(measurement, planar=True)
-            self._steps.setdefault(i, []).append((G.inverse(measurement), A @ covariance @ A.T))
+        step = forward_step(i, j, measurement, covariance)
+        if step is not None:
+            self._steps.setdefault(step[0], []).append(step[1:])
 
     def add_closure(self, i: int, j: int, measurement: Array, covariance: Array) -> None:
         """An accepted closure ``i_T_j``; kept when it spans at least the long-chain length of complete steps."""

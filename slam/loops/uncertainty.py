@@ -218,7 +218,8 @@ class RelativeUncertainty:
         graph = csr_matrix((w, lo, indptr), shape=(K, K))
         dist, pred = dijkstra(graph, directed=False, indices=j, return_predecessors=True, limit=limit)
         reached = np.isfinite(dist)
-        pos_var = np.where(reached, dist, limit)
+        s = self.scale
+        pos_var = np.where(reached, np.minimum(s * dist, limit), limit)
         # Rotation variance, odometry length and lever-weighted length along the same paths: the edge from
         # each keyframe's predecessor, summed up the predecessor tree by pointer doubling (log₂ K steps).
         has = reached & (pred >= 0)
@@ -229,12 +230,7 @@ class RelativeUncertainty:
         acc[idx] = np.column_stack([vr[e], ell[e], ell[e] * lever[e]])
         acc = sum_to_root(acc, np.where(has, pred, j).astype(np.int64), j)
         dt, dr = self._drift_variance(acc[:, 1], acc[:, 2])
-        dt = np.where(reached, np.minimum(dt, limit - pos_var), 0.0)
-        dr = np.where(reached, dr, 0.0)
-        rot_var = np.where(reached, acc[:, 0], limit)
-        if self.scale != 1.0:
-            s = self.scale
-            pos_var, dt = np.where(reached, np.minimum(s * pos_var, limit), pos_var), np.where(reached, s * dt, 0.0)
-            dt = np.where(reached, np.minimum(dt, limit - pos_var), 0.0)
-            rot_var, dr = np.where(reached, s * rot_var, rot_var), s * dr
+        dt = np.where(reached, np.minimum(s * dt, limit - pos_var), 0.0)
+        dr = np.where(reached, s * dr, 0.0)
+        rot_var = np.where(reached, s * acc[:, 0], limit)
         return NodeUncertainty(pos_var + dt, rot_var + dr, dt, dr)
