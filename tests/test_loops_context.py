@@ -76,6 +76,55 @@ def test_a_group_is_refused_where_the_estimates_own_placement_fits_its_path_bett
     assert context_agrees(truth, kfs, drifted, path, LoopConfig())
 
 
+def test_a_group_the_path_fits_hardly_better_than_the_estimates_placement_is_refused():
+    """Bays every 5 m along 60 m of corridor, the last 20 m of the new pass all among them, so the path fits each
+    bay alike. The estimate has drifted 1.2 m east along the corridor. A group at the bays' alias 5 m east fits
+    the path better than the estimate's own placement, refined within a floor window, but by less than the
+    ambiguity ratio: a near tie the path cannot resolve, and the group, which would move the estimate by more than
+    a floor window, is refused. The group at the truth fits clearly better (beyond the ratio) and stands."""
+    world = bays_round_a_corner(length=60.0)
+    old_xyt, new_xyt = _route(56.0), _route(40.0)
+    kfs = keyframes(world, old_xyt, seed=1) + keyframes(world, new_xyt, seed=2, first_id=len(old_xyt))
+    poses = np.array([k.odom_pose for k in kfs])
+    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
+    step[len(old_xyt)] = 50.0
+    path = np.cumsum(step)
+    drifted = poses.copy()
+    drifted[len(old_xyt):, 0, 3] += 1.2
+    cfg = LoopConfig()
+
+    def group(shift_m: float) -> list[LoopClosure]:
+        """The last three keyframes placed *shift_m* east of the truth, against old keyframes 5 m apart round there."""
+        out = []
+        for j, off in zip(range(len(kfs) - 3, len(kfs)), (-5.0, 0.0, 5.0)):
+            x = poses[j][0, 3] + shift_m + off
+            i = int(np.argmin(np.hypot(np.array(old_xyt)[:, 0] - x, np.array(old_xyt)[:, 1] - 1.0)))
+            claimed = G.xytheta_to_matrix(poses[j][0, 3] + shift_m, poses[j][1, 3], 0.0)
+            out.append(LoopClosure(i, j, G.relative(drifted[i], claimed), np.eye(3) * 1e-4, 0.9, 0.02, "spatial", True))
+        return out
+
+    def ratio(g: list[LoopClosure]) -> float:
+        """The estimate's refined placement's score over the group's, on the old pass round the group's old keyframes."""
+        newest = max(g, key=lambda lc: lc.j)
+        first, last = min(lc.i for lc in g), max(lc.i for lc in g)
+        old_map = np.vstack([G.transform_points(G.relative(drifted[newest.i], drifted[m]), kfs[m].points)[:, :2]
+                             for m in range(max(0, first - 40), min(len(old_xyt), last + 41))])
+        recent = [m for m in range(newest.j, len(old_xyt), -1) if path[newest.j] - path[m] <= cfg.group_context_path_m]
+        cloud = np.vstack([G.transform_points(G.relative(drifted[newest.j], drifted[m]), kfs[m].points)[:, :2]
+                           for m in recent])
+        field = correlative.LikelihoodPyramid(old_map, 0.1, 0.1, levels=5)
+        floor = np.radians(cfg.window_floor_deg)
+        mine = correlative.match(cloud, field, newest.measurement, cfg.window_floor_m, floor).score
+        theirs = correlative.match(cloud, field, G.relative(drifted[newest.i], drifted[newest.j]), cfg.window_floor_m,
+                                   floor).score
+        return theirs / mine
+
+    alias, truth = group(5.0), group(0.0)
+    assert ratio(alias) < 1.0  # the path fits the alias better than the estimate's placement (the old rule passed it)
+    assert not context_agrees(alias, kfs, drifted, path, cfg)
+    assert context_agrees(truth, kfs, drifted, path, cfg)
+
+
 def test_a_group_overrules_the_estimate_only_where_the_path_matched_from_the_estimate_moves_to_it():
     """The estimate puts the return 0.6 m east of the truth. The path, matched on the old place from there (±1 m),
     moves to the truth: a group at the truth overrules it. Where the estimate is right, a group 0.6 m east does

@@ -114,12 +114,12 @@ def _group_path_match_or_none(group: list[LoopClosure], keyframes: list[Keyframe
 def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
                    config: LoopConfig, min_score: float = 0.0) -> bool:
     """Whether the recent path up to the *group*'s newest keyframe, matched as a whole on the old place, lands
-    where the group says (see the module docstring), and does not fit better where the estimate puts it
-    (:func:`_estimate_fits_better`). *path_m*: cumulative odometry path (m) at each keyframe.
+    where the group says (see the module docstring), and does not fit about as well (``ambiguity_ratio``) where
+    the estimate puts it (:func:`_estimate_fits_as_well`). *path_m*: cumulative odometry path (m) at each keyframe.
     True when the test has nothing to add: off, no recent path of its own, no surroundings, or a best pose
     that scores below *min_score* (a path the estimate blurred, or surroundings that hold little of it: no
     pose explains it, and which explains it least badly says nothing) — except against the estimate's own
-    placement (:func:`_estimate_fits_better`), which is asked first."""
+    placement (:func:`_estimate_fits_as_well`), which is asked first."""
     c = config
     try:
         matched = _group_path_match(group, keyframes, poses, path_m, c)
@@ -130,7 +130,7 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
         found = correlative.match(query, pyramid, guess, c.group_context_window_m, np.radians(c.window_floor_deg))
     except DegenerateInputError:
         return True
-    if _estimate_fits_better(query, pyramid, guess, _planar(G.relative(poses[newest.i], poses[newest.j])), c):
+    if _estimate_fits_as_well(query, pyramid, guess, _planar(G.relative(poses[newest.i], poses[newest.j])), c):
         return False
     if found.score < min_score:
         return True
@@ -139,22 +139,24 @@ def context_agrees(group: list[LoopClosure], keyframes: list[Keyframe], poses: A
     return near or found.guess_score >= c.ambiguity_ratio * found.score
 
 
-def _estimate_fits_better(query: Array, pyramid: correlative.LikelihoodPyramid, group_T: Array, estimate_T: Array,
-                          config: LoopConfig) -> bool:
-    """Whether the recent path fits the old place better where the estimate puts it than where the group does:
-    each placement refined within a floor window, the two more than a floor window apart, the estimate's
-    scoring higher. Two hypotheses, one evidence: a group that moves the robot off a placement its own path
-    fits better is the alias (a T-junction's side corridor seen from a new arm, which the old place's map does
-    not hold, so the ratio above passes it), while a group that corrects a drifted estimate moves the path from
-    a worse fit to a better one. Asked even where no pose fits the path well (below the bar of
-    :func:`context_agrees`): which of two placements fits it better is still evidence between them, where
-    the best of a whole window is not (measured over the recorded group decisions of 21 logs,
+def _estimate_fits_as_well(query: Array, pyramid: correlative.LikelihoodPyramid, group_T: Array, estimate_T: Array,
+                           config: LoopConfig) -> bool:
+    """Whether the recent path fits the old place where the estimate puts it about as well as where the group
+    does, or better: each placement refined within a floor window, the two more than a floor window apart, the
+    estimate's scoring at least ``ambiguity_ratio`` of the group's. Two hypotheses, one evidence: a group that
+    moves the robot off a placement its own path fits better is the alias (a T-junction's side corridor seen
+    from a new arm, which the old place's map does not hold, so the ratio above passes it), while a group that
+    corrects a drifted estimate moves the path from a worse fit to a clearly better one. A near tie is an
+    ambiguity the path cannot resolve, as in every uniqueness test here, and the estimate, which the group
+    would move by more than a floor window, keeps its place. Asked even where no pose fits the path well
+    (below the bar of :func:`context_agrees`): which of two placements fits it better is still evidence between
+    them, where the best of a whole window is not (measured over the recorded group decisions of 21 logs,
     docs/LOOP_CLOSURE.md)."""
     floor_rad = np.radians(config.window_floor_deg)
     mine = correlative.match(query, pyramid, group_T, config.window_floor_m, floor_rad)
     theirs = correlative.match(query, pyramid, estimate_T, config.window_floor_m, floor_rad)
     d = G.matrix_to_xytheta(G.relative(mine.transform, theirs.transform))
-    return bool(np.hypot(d[0], d[1]) > config.window_floor_m and theirs.score > mine.score)
+    return bool(np.hypot(d[0], d[1]) > config.window_floor_m and theirs.score >= config.ambiguity_ratio * mine.score)
 
 
 def path_overrules(group: list[LoopClosure], keyframes: list[Keyframe], poses: Array, path_m: Array,
