@@ -281,6 +281,28 @@ def test_a_vouched_alignment_is_accepted_exactly_when_it_passes_the_chi2_gate():
     assert acc.pending == [] and acc.stats.rejections[Rejection.INCONSISTENT] == 1
 
 
+def test_a_closure_accepted_alone_is_held_to_the_model_as_stated_when_the_run_widened_it():
+    """Where the run's closures scaled the closer's variances (``loops.window_calibration``), the estimate's
+    covariance a candidate carries is the scaled one. A vouched alignment inside that wider gate but outside the
+    gate of the model as stated is not accepted on its own (here, with no overrule hook, rejected): the
+    calibration widens where the closer looks and what may wait for a group, not how far one closure moves the
+    estimate. Inside the stated gate it is accepted as without the scale."""
+    cfg = LoopConfig()
+    gate = chi2.ppf(cfg.consistency_probability, 3)
+    est = G.xytheta_to_matrix(2.0, 0.0, 0.0)
+    stated = np.diag([0.01, 0.01, 1e-4])
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    s = np.sqrt(0.01 + 1e-4)
+    for factor, accepted in ((0.98, True), (1.5, False)):
+        T = est @ G.se2_exp([factor * s * np.sqrt(gate), 0.0, 0.0])
+        assert mahalanobis2(est, 4.0 * stated, T, cov, True) < gate  # inside the widened gate either way
+        acc = _acceptance(cfg)
+        acc.uncertainty.scale = 4.0
+        lc = acc.consider(_verified(0, 30, T, est, 4.0 * stated, True, cov), _keyframes(60), _line(60), lambda v: True)
+        assert (lc is not None) == accepted
+        assert acc.stats.rejections[Rejection.INCONSISTENT] == int(not accepted)
+
+
 def test_a_global_match_is_held_pending_only_within_its_chi2_gate_of_the_estimate():
     """A global search is not bounded by the estimate (whole local map, every heading): its match goes on to
     the group stage only within the ``GLOBAL_PLAUSIBLE_PROBABILITY`` quantile of χ²(3) of the estimate's

@@ -4,6 +4,9 @@
   is accepted when it is consistent with the estimate: the squared Mahalanobis distance of the alignment from the
   estimate's relative pose, under the sum of both covariances, is within the ``consistency_probability`` quantile
   of χ²(dof) (the χ² gate of Bar-Shalom et al., *Estimation with Applications to Tracking and Navigation*, §5.4).
+  The estimate's covariance is the model as stated, also where the run's closures scaled the closer's variances
+  (:mod:`slam.loops.calibration`): the scale widens where the closer looks and what may wait for a group, not how far
+  one closure may move the estimate on its own.
   One that fails the gate is rejected — unless it is unique, when it waits for a group like the closures below,
   and that group stands only if the closer's :attr:`Acceptance.overrule` hook also agrees: the recent path,
   matched on the old place from where the estimate puts it, moves where the group says
@@ -146,7 +149,8 @@ class Acceptance:
                 pending.append(Pending(lc, False, v.map_half))
                 return None
         if c.vouched and c.estimate is not None:
-            if mahalanobis2(c.estimate[0], c.estimate[1], v.transform, v.covariance, self.planar) <= self.gate:
+            stated = c.estimate[1] / self.uncertainty.scale  # the model as stated (module docstring)
+            if mahalanobis2(c.estimate[0], stated, v.transform, v.covariance, self.planar) <= self.gate:
                 lc = to_closure(v, keyframes, self.planar)
                 self.recent.append(lc)
                 self.stats.accepted += 1
