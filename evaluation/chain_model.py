@@ -27,7 +27,7 @@ calibrated by the run's closures").
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from numpy.typing import NDArray
@@ -144,6 +144,10 @@ class ChainSample:
 
     def __len__(self) -> int:
         return len(self.length)
+
+    def joined(self, other: "ChainSample") -> "ChainSample":
+        """This sample's chains followed by *other*'s (a sample that grows by its new chains, not rebuilt)."""
+        return ChainSample(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
 
     def nees(self, walk: float = 1.0, jitter: float = 0.0, mask: NDArray[np.bool_] | None = None) -> Array:
         """NEES/dof of each chain (of those in *mask*) under ``walk · P + jitter · Q + R``."""

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 import pytest
 
 from core import geometry as G
+from evaluation.chain_model import ChainSample
 from slam.loops.calibration import WindowCalibration
 from slam.loops.uncertainty import RelativeUncertainty
 
@@ -74,3 +77,21 @@ def test_the_scale_multiplies_every_variance_the_closer_uses():
     np.testing.assert_allclose(three.without_drift().position_var, 3 * one.without_drift().position_var, rtol=1e-12)
     assert uncertainty(3.0).chain_variance(10, 40, pos) == pytest.approx(
         tuple(3 * v for v in uncertainty(1.0).chain_variance(10, 40, pos)), rel=1e-12)
+
+
+def test_the_sample_grown_at_each_refit_is_the_sample_of_every_closure():
+    """The online calibration refits after every keyframe that brought long closures; its sample grows by the new
+    ones (``ChainSample.joined``) instead of being rebuilt from every row, and holds exactly the same numbers."""
+    rows = _run(np.random.default_rng(3), 4.0, K=1500)._rows  # noqa: SLF001 (the rows are the point of the test)
+    whole = ChainSample.of(rows)
+    grown = ChainSample.of([])
+    for a, b in ((0, 1), (1, 40), (40, 41), (41, len(rows))):
+        grown = grown.joined(ChainSample.of(rows[a:b]))
+    for f in fields(whole):
+        np.testing.assert_array_equal(getattr(grown, f.name), getattr(whole, f.name))
+    online, once = WindowCalibration(0.0), WindowCalibration(0.0)
+    once._rows = list(rows)  # noqa: SLF001
+    for k in range(0, len(rows), 7):
+        online._rows = rows[: k + 7]  # noqa: SLF001
+        online.update()
+    assert online.scale == once.update() > 1.0

@@ -44,6 +44,7 @@ class WindowCalibration:
         self.min_chains = int(min_chains)
         self._steps: dict[int, list[tuple[Array, Array]]] = {}  # step k (keyframe k − 1 → k): its edges so far
         self._rows: list[tuple] = []
+        self._sample = ChainSample.of([])  # the rows so far as arrays, grown by the new ones at each refit
         self._fitted = 0  # long closures the current scale was fitted on
         self.scale = 1.0
 
@@ -65,7 +66,7 @@ class WindowCalibration:
             return self.scale
         self._fitted = len(self._rows)
         # The closer's model as a whole (the edges and the heading rate) scales; the closures' own covariance does not.
-        sample = ChainSample.of(self._rows)
+        sample = self._sample = self._sample.joined(ChainSample.of(self._rows[len(self._sample):]))
         if sample.nees(1.0, 0.0, sample.length >= LONG_CHAIN_KEYFRAMES).mean() <= 1.0:
             self.scale = 1.0
             return self.scale
