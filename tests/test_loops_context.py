@@ -21,9 +21,11 @@ def _route(east_to: float) -> list[tuple[float, float, float]]:
     return down + turn + east
 
 
-def _scene():
-    world = bays_round_a_corner()
-    old_xyt, new_xyt = _route(36.0), _route(14.0)
+def _scene(world=None, old_to: float = 36.0, new_to: float = 14.0):
+    """An old pass round the corner and east to *old_to*, a new one to *new_to* (keyframes, true poses, the
+    cumulative path in m, the old pass's (x, y, θ))."""
+    world = bays_round_a_corner() if world is None else world
+    old_xyt, new_xyt = _route(old_to), _route(new_to)
     kfs = keyframes(world, old_xyt, seed=1) + keyframes(world, new_xyt, seed=2, first_id=len(old_xyt))
     poses = np.array([k.odom_pose for k in kfs])
     step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
@@ -82,13 +84,7 @@ def test_a_group_the_path_fits_hardly_better_than_the_estimates_placement_is_ref
     the path better than the estimate's own placement, refined within a floor window, but by less than the
     ambiguity ratio: a near tie the path cannot resolve, and the group, which would move the estimate by more than
     a floor window, is refused. The group at the truth fits clearly better (beyond the ratio) and stands."""
-    world = bays_round_a_corner(length=60.0)
-    old_xyt, new_xyt = _route(56.0), _route(40.0)
-    kfs = keyframes(world, old_xyt, seed=1) + keyframes(world, new_xyt, seed=2, first_id=len(old_xyt))
-    poses = np.array([k.odom_pose for k in kfs])
-    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
-    step[len(old_xyt)] = 50.0
-    path = np.cumsum(step)
+    kfs, poses, path, old_xyt = _scene(bays_round_a_corner(length=60.0), 56.0, 40.0)
     drifted = poses.copy()
     drifted[len(old_xyt):, 0, 3] += 1.2
     cfg = LoopConfig()
@@ -98,7 +94,7 @@ def test_a_group_the_path_fits_hardly_better_than_the_estimates_placement_is_ref
         out = []
         for j, off in zip(range(len(kfs) - 3, len(kfs)), (-5.0, 0.0, 5.0)):
             x = poses[j][0, 3] + shift_m + off
-            i = int(np.argmin(np.hypot(np.array(old_xyt)[:, 0] - x, np.array(old_xyt)[:, 1] - 1.0)))
+            i = int(np.argmin(np.hypot(old_xyt[:, 0] - x, old_xyt[:, 1] - 1.0)))
             claimed = G.xytheta_to_matrix(poses[j][0, 3] + shift_m, poses[j][1, 3], 0.0)
             out.append(LoopClosure(i, j, G.relative(drifted[i], claimed), np.eye(3) * 1e-4, 0.9, 0.02, "spatial", True))
         return out
@@ -156,15 +152,9 @@ def test_a_closure_its_scan_cannot_place_along_repeating_bays_is_unique_on_the_p
     the truth (its own uniqueness test fails), but its last 20 m of path, round the corner, fits only at the
     truth. A closure at the truth is unique on the path; one at the alias is not, nor is any closure with the
     test off or a path that scores below the bar a scan must clear."""
-    world = bays_round_a_corner(period=2.5)
-    old_xyt, new_xyt = _route(36.0), _route(10.0)
-    kfs = keyframes(world, old_xyt, seed=1) + keyframes(world, new_xyt, seed=2, first_id=len(old_xyt))
-    poses = np.array([k.odom_pose for k in kfs])
-    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
-    step[len(old_xyt)] = 50.0
-    path = np.cumsum(step)
+    kfs, poses, path, old_xyt = _scene(bays_round_a_corner(period=2.5), 36.0, 10.0)
     j = len(kfs) - 1
-    i = int(np.argmin(np.hypot(np.array(old_xyt)[:, 0] - 10.0, np.array(old_xyt)[:, 1] - 1.0)))
+    i = int(np.argmin(np.hypot(old_xyt[:, 0] - 10.0, old_xyt[:, 1] - 1.0)))
     scan = kfs[j].points[:, :2]
     old_map = np.vstack([G.transform_points(G.relative(poses[i], poses[m]), kfs[m].points)[:, :2]
                          for m in range(i - 6, i + 7)])
