@@ -9,8 +9,8 @@ the back end (:func:`slam.pipeline.loop_replay.replay_loops`, which accepts exac
 Bias 0 reproduces ``slam run``.
 
 Reported per log and bias, for the default configuration and, side by side, the same without the loop
-closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0) and with the closures' calibration of its
-variances (``loops.window_calibration`` on, off by default; ``--no-reference`` skips both): the relation error
+closer's heading-rate term (``loops.heading_drift_deg_per_m`` 0) and without the closures' calibration of its
+variances (``loops.window_calibration`` off; ``--no-reference`` skips both): the relation error
 (Kümmerle et al. 2009) of every scan's pose, the largest variance scale the calibration reached, the closures
 accepted, the precision after the final solve (Cartographer's 20 cm / 1°), the global searches (with the
 global matches admitted beyond the gate because another agreed, ``corroborated``, and the keyframes sought again
@@ -117,8 +117,8 @@ def against_truth(record: FrontEndRecord, rep: LoopReplay) -> dict:
 def stress(log: Path, relations: Path | None, biases: list[float], config: SlamConfig, reference: bool,
            bends: list[float] = (), jumps_m: list[float] = (), jumps_deg: list[float] = ()) -> dict:
     """Per bias (``bias``) and per bend (``bend``), the default configuration and, with *reference*, the same
-    without the loop closer's heading-rate term (``…_without_heading_rate``) and with the closures' calibration of
-    its variances (``…_with_window_calibration``), replayed on one recording.
+    without the loop closer's heading-rate term (``…_without_heading_rate``) and without the closures' calibration
+    of its variances (``…_without_window_calibration``), replayed on one recording.
     Scored against the *relations*, or without them against the frames' true poses."""
     t0 = time.perf_counter()
     record = record_front_end(open_log(log).frames(), config)
@@ -129,7 +129,7 @@ def stress(log: Path, relations: Path | None, biases: list[float], config: SlamC
     variants = [("", config.loops)]
     if reference:
         variants.append(("_without_heading_rate", config.loops.model_copy(update={"heading_drift_deg_per_m": 0.0})))
-        variants.append(("_with_window_calibration", config.loops.model_copy(update={"window_calibration": True})))
+        variants.append(("_without_window_calibration", config.loops.model_copy(update={"window_calibration": False})))
     cases = [("bias", str(b), lambda b=b: tilted(record, b)) for b in biases]
     cases += [("bend", str(d), lambda d=d: bent(record, d)) for d in bends]
     cases += [("jump_m", str(m), lambda m=m: jumped(record, along_m=m)) for m in jumps_m]
